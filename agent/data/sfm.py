@@ -1,0 +1,384 @@
+"""Structure from motion on one robot's own images (pycolmap), for robots that have no poses.
+
+A robot whose folder holds images only gets its local poses, its intrinsics and a sparse depth
+prior from an incremental SfM of its own images. The frame and the scale of the result are
+arbitrary (whatever COLMAP picked): that is exactly why relative poses between such robots are
+Sim(3) and not SE(3).
+
+Everything runs on the CPU with a fixed number of threads (the machines have 2 cores shared with
+other work) and is cached: SfM of 50 images takes minutes, so the result is stored in
+``cache_dir`` under a key made of the image bytes and the configuration; a second call with the
+same images returns from the cache, changed images or settings recompute.
+
+Conventions of the output are those of :class:`agent.data.views.Views`: OpenGL camera-to-world,
+intrinsics ``(fx, fy, cx, cy)`` with the centre of pixel column u at ``u + 0.5`` (COLMAP uses the
+same pixel convention, so no half-pixel shift is needed), z-depth with 0 = unknown.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import re
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from agent.data.views import DataError, Views
+
+__all__ = ["SfmConfig", "run_sfm", "list_images", "read_image", "IMAGE_SUFFIXES"]
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+_CACHE_FORMAT = 1  # bump when the layout of result.npz changes
+# OpenCV camera (x right, y down, z forward) <-> OpenGL camera (x right, y up, z backward).
+_CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+@dataclass(frozen=True)
+class SfmConfig:
+    """Settings of the per-robot SfM. The defaults suit a few dozen images on 2 CPU cores."""
+
+    max_image_size: int = 800  # SfM runs on the images downscaled to at most this many pixels a side
+    camera_model: str = "SIMPLE_PINHOLE"  # Views has no distortion terms: keep the model pinhole
+    max_num_features: int = 4096  # SIFT features per image
+    exhaustive_max_images: int = 60  # exhaustive matching up to this many images, sequential above
+    sequential_overlap: int = 10  # neighbours (in natural name order) matched in sequential mode
+    num_threads: int = 2
+    seed: int = 0
+    background: float = 1.0  # RGBA images are composited onto this grey level before SfM
+    min_registered: int = 3  # fewer registered images than this is an error ...
+    min_registered_fraction: float = 0.3  # ... and so is fewer than this fraction of the images
+    depth_min_track_length: int = 2  # SfM points seen by fewer images do not enter the depth prior
+    depth_max_reproj_error: float = 2.0  # px; nor do points with a larger mean reprojection error
+    max_runtime_seconds: int = -1  # mapper time limit, -1 = none
+    verbose: bool = False  # COLMAP's own progress log (very chatty) on stderr
+
+
+# --------------------------------------------------------------------------------------------
+# Image files
+
+
+def _natural_key(name: str) -> list:
+    """Sort ``r_2`` before ``r_10``: sequential matching relies on capture order."""
+    return [int(tok) if tok.isdigit() else tok.lower() for tok in re.split(r"(\d+)", name)]
+
+
+def list_images(image_dir: str | Path) -> list[Path]:
+    """Image files directly inside ``image_dir``, in natural name order."""
+    image_dir = Path(image_dir)
+    if not image_dir.is_dir():
+        raise DataError(f"image folder {image_dir} does not exist")
+    files = [p for p in image_dir.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
+    return sorted(files, key=lambda p: _natural_key(p.name))
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Any 8/16-bit grey/RGB/RGBA file -> float32 [H, W, 3|4] straight colour in [0, 1], RGB order."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise DataError(f"cannot read image {path}")
+    scale = 65535.0 if raw.dtype == np.uint16 else 255.0
+    img = raw.astype(np.float32) / scale
+    if img.ndim == 2:
+        img = np.repeat(img[:, :, None], 3, axis=2)
+    elif img.shape[2] == 3:
+        img = img[:, :, ::-1]
+    elif img.shape[2] == 4:
+        img = img[:, :, [2, 1, 0, 3]]
+    else:
+        raise DataError(f"{path}: unsupported channel count {img.shape[2]}")
+    return np.ascontiguousarray(img)
+
+
+def _composite(img: np.ndarray, background: float) -> np.ndarray:
+    """[H, W, 3|4] -> [H, W, 3]: straight RGBA over a constant grey (white for the NeRF datasets)."""
+    if img.shape[2] == 3:
+        return img
+    alpha = img[:, :, 3:4]
+    return img[:, :, :3] * alpha + background * (1.0 - alpha)
+
+
+def _resize(img: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Area resize; RGBA is resized premultiplied so that edge colours do not bleed from the background."""
+    if img.shape[1] == width and img.shape[0] == height:
+        return img
+    if img.shape[2] == 4:
+        pre = np.concatenate([img[:, :, :3] * img[:, :, 3:4], img[:, :, 3:4]], axis=2)
+        pre = cv2.resize(pre, (width, height), interpolation=cv2.INTER_AREA)
+        alpha = pre[:, :, 3:4]
+        rgb = np.where(alpha > 1e-6, pre[:, :, :3] / np.maximum(alpha, 1e-6), 0.0)
+        return np.concatenate([np.clip(rgb, 0, 1), alpha], axis=2).astype(np.float32)
+    return cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def _fit_size(width: int, height: int, max_side: int) -> tuple[int, int]:
+    scale = min(1.0, max_side / max(width, height)) if max_side > 0 else 1.0
+    return max(1, round(width * scale)), max(1, round(height * scale))
+
+
+# --------------------------------------------------------------------------------------------
+# Cache
+
+
+def _cache_key(files: list[Path], config: SfmConfig) -> str:
+    import pycolmap
+
+    h = hashlib.sha256()
+    h.update(f"format={_CACHE_FORMAT};pycolmap={pycolmap.__version__};".encode())
+    h.update(json.dumps(dataclasses.asdict(config), sort_keys=True).encode())
+    for f in files:
+        h.update(f.name.encode() + b"\0")
+        h.update(hashlib.sha256(f.read_bytes()).digest())
+    return h.hexdigest()
+
+
+# --------------------------------------------------------------------------------------------
+# SfM proper
+
+
+def _reconstruct(files: list[Path], work: Path, config: SfmConfig) -> dict:
+    """Run pycolmap in ``work``; return the arrays of the largest model (SfM resolution)."""
+    import pycolmap
+
+    if pycolmap.has_cuda:  # the Device.cpu arguments below already force the CPU path
+        log.info("pycolmap was built with CUDA; forcing the CPU")
+    pycolmap.set_random_seed(config.seed)
+    pycolmap.logging.minloglevel = 0 if config.verbose else 2  # 2 = errors only
+
+    img_dir = work / "images"
+    if img_dir.exists():
+        shutil.rmtree(img_dir)
+    img_dir.mkdir(parents=True)
+    names: list[str] = []
+    size = None
+    for f in files:
+        img = read_image(f)
+        if size is None:
+            size = (img.shape[1], img.shape[0])
+        elif (img.shape[1], img.shape[0]) != size:
+            raise DataError(f"{f.name} is {img.shape[1]}x{img.shape[0]}, the others {size[0]}x{size[1]}: "
+                            "one robot folder must hold images of one camera and size")
+        w, h = _fit_size(size[0], size[1], config.max_image_size)
+        rgb = _resize(_composite(img, config.background), w, h)
+        name = f.stem + ".png"
+        if name in names:
+            raise DataError(f"two images in {f.parent} share the stem {f.stem!r}")
+        names.append(name)
+        out = np.clip(np.rint(rgb[:, :, ::-1] * 255.0), 0, 255).astype(np.uint8)
+        cv2.imwrite(str(img_dir / name), out)
+    assert size is not None
+    sfm_w, sfm_h = _fit_size(size[0], size[1], config.max_image_size)
+
+    db = work / "database.db"
+    if db.exists():
+        db.unlink()
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = config.camera_model
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.use_gpu = False
+    extraction.num_threads = config.num_threads
+    extraction.max_image_size = config.max_image_size
+    extraction.sift.max_num_features = config.max_num_features
+    pycolmap.extract_features(db, img_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                              reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.use_gpu = False
+    matching.num_threads = config.num_threads
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = config.seed
+    if len(names) <= config.exhaustive_max_images:
+        pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
+                                  device=pycolmap.Device.cpu)
+        matcher = "exhaustive"
+    else:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = config.sequential_overlap
+        pairing.num_threads = config.num_threads
+        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
+                                  verification_options=verification, device=pycolmap.Device.cpu)
+        matcher = "sequential"
+
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = config.num_threads
+    mapping.random_seed = config.seed
+    mapping.mapper.random_seed = config.seed
+    mapping.mapper.num_threads = config.num_threads
+    mapping.triangulation.random_seed = config.seed
+    mapping.ba_use_gpu = False
+    mapping.ba_refine_principal_point = False
+    mapping.max_runtime_seconds = int(config.max_runtime_seconds)
+    sparse = work / "sparse"
+    if sparse.exists():
+        shutil.rmtree(sparse)
+    sparse.mkdir()
+    models = pycolmap.incremental_mapping(db, img_dir, sparse, options=mapping)
+    if not models:
+        return {"names": names, "registered": [], "size": (sfm_w, sfm_h), "matcher": matcher}
+    best = max(models, key=lambda k: (models[k].num_reg_images(), -k))
+    rec = models[best]
+    (sparse / "largest").mkdir()
+    rec.write(sparse / "largest")  # kept next to the cache for inspection with the COLMAP GUI
+
+    reg_ids = sorted(rec.reg_image_ids(), key=lambda i: names.index(rec.image(i).name))
+    c2w = np.zeros((len(reg_ids), 4, 4))
+    intr = np.zeros((len(reg_ids), 4))
+    obs_img, obs_xy, obs_z = [], [], []
+    for k, image_id in enumerate(reg_ids):
+        image = rec.image(image_id)
+        cam = image.camera
+        w2c = np.eye(4)
+        w2c[:3, :] = image.cam_from_world().matrix()
+        c2w[k] = np.linalg.inv(w2c) @ _CV_TO_GL
+        intr[k] = [cam.focal_length_x, cam.focal_length_y, cam.principal_point_x, cam.principal_point_y]
+        for p2d in image.points2D:
+            if not p2d.has_point3D():
+                continue
+            p3d = rec.point3D(p2d.point3D_id)
+            if p3d.track.length() < config.depth_min_track_length or p3d.error > config.depth_max_reproj_error:
+                continue
+            z = float((w2c[:3, :3] @ p3d.xyz + w2c[:3, 3])[2])
+            if z <= 0:
+                continue
+            obs_img.append(k)
+            obs_xy.append(p2d.xy)
+            obs_z.append(z)
+    points = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float32).reshape(-1, 3)
+    return {
+        "names": names,
+        "registered": [rec.image(i).name for i in reg_ids],
+        "size": (sfm_w, sfm_h),
+        "matcher": matcher,
+        "c2w": c2w,
+        "intrinsics": intr,
+        "obs_image": np.asarray(obs_img, dtype=np.int32),
+        "obs_xy": np.asarray(obs_xy, dtype=np.float32).reshape(-1, 2),
+        "obs_z": np.asarray(obs_z, dtype=np.float32),
+        "points": points,
+        "num_models": len(models),
+        "mean_reproj_error": float(rec.compute_mean_reprojection_error()),
+    }
+
+
+def _save(path: Path, key: str, res: dict) -> None:
+    arrays = {k: v for k, v in res.items() if isinstance(v, np.ndarray)}
+    info = {k: v for k, v in res.items() if not isinstance(v, np.ndarray)}
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, key=np.array(key), info=np.array(json.dumps(info)), **arrays)
+    tmp.replace(path)
+
+
+def _load(path: Path, key: str) -> dict | None:
+    if not path.exists():
+        return None
+    try:
+        with np.load(path) as z:
+            if str(z["key"]) != key:
+                return None
+            res = json.loads(str(z["info"]))
+            res.update({k: z[k] for k in z.files if k not in ("key", "info")})
+    except (OSError, ValueError, KeyError) as exc:  # a damaged cache is recomputed, not fatal
+        log.warning("ignoring unreadable SfM cache %s: %s", path, exc)
+        return None
+    res["size"] = tuple(res["size"])
+    return res
+
+
+# --------------------------------------------------------------------------------------------
+# Public entry point
+
+
+def run_sfm(image_dir: str | Path, cache_dir: str | Path | None = None, *, width: int | None = None,
+            config: SfmConfig = SfmConfig()) -> Views:
+    """Poses, intrinsics and a sparse depth prior for a folder of images, from their own SfM.
+
+    Returns the registered images only, at their original size (or ``width`` pixels wide), with
+    OpenGL c2w in SfM's arbitrary frame and scale and ``depth`` [M, H, W] holding the z-depth of
+    the triangulated points each image observes (0 elsewhere). ``meta`` says which images did not
+    register, the SfM resolution, the point cloud (``sfm_points`` [N, 3]) and whether the cache hit.
+    Raises :class:`DataError` when the folder has no images or too few of them register.
+    """
+    image_dir = Path(image_dir)
+    files = list_images(image_dir)
+    if not files:
+        raise DataError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {image_dir}")
+    key = _cache_key(files, config)
+
+    tmp_ctx = tempfile.TemporaryDirectory(prefix="dinerf-sfm-") if cache_dir is None else None
+    work = Path(tmp_ctx.name) if tmp_ctx is not None else Path(cache_dir)
+    try:
+        work.mkdir(parents=True, exist_ok=True)
+        result_path = work / "sfm_result.npz"
+        t0 = time.perf_counter()
+        res = _load(result_path, key)
+        cache_hit = res is not None
+        if res is None:
+            res = _reconstruct(files, work, config)
+            res["seconds"] = time.perf_counter() - t0
+            _save(result_path, key, res)
+    finally:
+        if tmp_ctx is not None:
+            tmp_ctx.cleanup()
+
+    n_reg = len(res["registered"])
+    need = max(config.min_registered, int(np.ceil(config.min_registered_fraction * len(files))))
+    if n_reg < need:
+        raise DataError(f"SfM registered {n_reg} of {len(files)} images in {image_dir} (need at least {need}): "
+                        "the images overlap too little or have too little texture")
+
+    by_name = {f.stem + ".png": f for f in files}
+    reg_files = [by_name[n] for n in res["registered"]]
+    first = read_image(reg_files[0])
+    h0, w0 = first.shape[:2]
+    out_w = w0 if width is None else int(width)
+    out_h = h0 if width is None else max(1, round(h0 * out_w / w0))
+    images = np.stack([_resize(first if i == 0 else read_image(f), out_w, out_h) for i, f in enumerate(reg_files)])
+
+    sfm_w, sfm_h = res["size"]
+    sx, sy = out_w / sfm_w, out_h / sfm_h
+    intr = np.asarray(res["intrinsics"], dtype=np.float64) * np.array([sx, sy, sx, sy])
+
+    # Sparse z-depth: one pixel per observation; where two land on one pixel keep the nearer.
+    depth = np.zeros((n_reg, out_h, out_w), dtype=np.float32)
+    if len(res["obs_z"]):
+        u = np.clip(np.floor(res["obs_xy"][:, 0] * sx).astype(np.int64), 0, out_w - 1)
+        v = np.clip(np.floor(res["obs_xy"][:, 1] * sy).astype(np.int64), 0, out_h - 1)
+        flat = np.full(n_reg * out_h * out_w, np.inf, dtype=np.float32)
+        np.minimum.at(flat, (res["obs_image"].astype(np.int64) * out_h + v) * out_w + u, res["obs_z"])
+        flat[np.isinf(flat)] = 0.0
+        depth = flat.reshape(n_reg, out_h, out_w)
+
+    meta = {
+        "source": "sfm",
+        "image_dir": str(image_dir),
+        "num_images": len(files),
+        "num_registered": n_reg,
+        "unregistered": [f.name for f in files if f.stem + ".png" not in set(res["registered"])],
+        "sfm_size": (int(sfm_w), int(sfm_h)),
+        "sfm_seconds": float(res.get("seconds", 0.0)),
+        "sfm_matcher": res.get("matcher"),
+        "sfm_num_models": int(res.get("num_models", 0)),
+        "sfm_mean_reproj_error": float(res.get("mean_reproj_error", float("nan"))),
+        "sfm_points": np.asarray(res["points"], dtype=np.float32),
+        "cache_hit": cache_hit,
+        "depth_metric": True,  # the sparse depth lives in the same frame and scale as the poses
+        "scale_known": False,  # SfM scale is arbitrary: relative poses must be Sim(3)
+    }
+    return Views(
+        images=torch.from_numpy(images.astype(np.float32)),
+        c2w=torch.from_numpy(np.asarray(res["c2w"], dtype=np.float64)).float(),
+        intrinsics=torch.from_numpy(intr).float(),
+        names=[Path(n).stem for n in res["registered"]],
+        depth=torch.from_numpy(depth),
+        meta=meta,
+    )
