@@ -36,6 +36,7 @@ __all__ = [
     "rotation_angle_deg",
     "pose_error",
     "umeyama",
+    "umeyama_batched",
     "look_at",
     "random_rotation",
 ]
@@ -210,6 +211,35 @@ def umeyama(src: Tensor, dst: Tensor, with_scale: bool = True, weights: Tensor |
     out = torch.eye(4, dtype=torch.float64)
     out[:3, :3] = scale * rot
     out[:3, 3] = mu_d - scale * rot @ mu_s
+    return out
+
+
+def umeyama_batched(src: Tensor, dst: Tensor, with_scale: bool = True) -> Tensor:
+    """:func:`umeyama` for many small problems at once (RANSAC hypotheses), unweighted.
+
+    src, dst: [B, N, 3] (N >= 3) -> T [B, 4, 4] float64. Degenerate sets (collinear, coincident)
+    give a finite but meaningless T (scale 0 when ``src`` has no spread): callers screen them.
+    """
+    src = src.to(torch.float64)
+    dst = dst.to(torch.float64)
+    if src.shape != dst.shape or src.ndim != 3 or src.shape[-1] != 3 or src.shape[1] < 3:
+        raise ValueError(f"umeyama_batched needs two [B, N>=3, 3] sets, got {tuple(src.shape)} and {tuple(dst.shape)}")
+    mu_s, mu_d = src.mean(1, keepdim=True), dst.mean(1, keepdim=True)  # [B, 1, 3]
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.transpose(1, 2) @ xs / src.shape[1]  # [B, 3, 3]
+    u, sig, vt = torch.linalg.svd(cov)
+    d = torch.ones(src.shape[0], 3, dtype=torch.float64)
+    d[:, 2] = torch.sign(torch.linalg.det(u) * torch.linalg.det(vt))
+    d[d[:, 2] == 0, 2] = 1
+    rot = u @ torch.diag_embed(d) @ vt
+    if with_scale:
+        var_s = (xs * xs).sum((1, 2)) / src.shape[1]
+        scale = (sig * d).sum(1) / var_s.clamp_min(1e-300)
+    else:
+        scale = torch.ones(src.shape[0], dtype=torch.float64)
+    out = torch.eye(4, dtype=torch.float64).repeat(src.shape[0], 1, 1)
+    out[:, :3, :3] = scale[:, None, None] * rot
+    out[:, :3, 3] = mu_d[:, 0] - (out[:, :3, :3] @ mu_s[:, 0, :, None])[..., 0]
     return out
 
 

@@ -96,6 +96,24 @@ def test_umeyama_recovers_a_known_similarity(with_scale):
     assert torch.allclose(est, T, atol=1e-9)
 
 
+@pytest.mark.parametrize("with_scale", [True, False])
+def test_umeyama_batched_matches_umeyama_on_every_problem(with_scale):
+    g = _gen(4)
+    src = torch.randn(16, 5, 3, generator=g, dtype=torch.float64)
+    dst = torch.randn(16, 5, 3, generator=g, dtype=torch.float64) * 2 + 1  # noisy, not exact
+    batch = G.umeyama_batched(src, dst, with_scale=with_scale)
+    for b in range(16):
+        assert torch.allclose(batch[b], G.umeyama(src[b], dst[b], with_scale=with_scale), atol=1e-9)
+    # Minimal (3-point) exact problems are solved exactly, reflections excluded.
+    T = G.sim3_from_params(torch.tensor(-0.3, dtype=torch.float64), torch.tensor([0.1, 3.0, -0.2], dtype=torch.float64),
+                           torch.tensor([0.5, 0.0, -4.0], dtype=torch.float64))
+    pts = torch.randn(8, 3, 3, generator=g, dtype=torch.float64)
+    est = G.umeyama_batched(pts, G.transform_points(T, pts.reshape(-1, 3)).reshape(8, 3, 3), with_scale=True)
+    assert torch.allclose(est, T.expand(8, 4, 4), atol=1e-8)
+    with pytest.raises(ValueError):
+        G.umeyama_batched(torch.zeros(4, 2, 3), torch.zeros(4, 2, 3))
+
+
 def test_umeyama_rejects_bad_shapes():
     with pytest.raises(ValueError):
         G.umeyama(torch.zeros(2, 3), torch.zeros(2, 3))
