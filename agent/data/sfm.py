@@ -50,6 +50,8 @@ class SfmConfig:
 
     max_image_size: int = 800  # SfM runs on the images downscaled to at most this many pixels a side
     camera_model: str = "SIMPLE_PINHOLE"  # Views has no distortion terms: keep the model pinhole
+    focal_px: float | None = None  # known focal length in pixels of the original images (else guessed)
+    refine_focal: bool = True  # let bundle adjustment refine the focal length (even a known one)
     max_num_features: int = 4096  # SIFT features per image
     exhaustive_max_images: int = 60  # exhaustive matching up to this many images, sequential above
     sequential_overlap: int = 10  # neighbours (in natural name order) matched in sequential mode
@@ -184,6 +186,10 @@ def _reconstruct(files: list[Path], work: Path, config: SfmConfig) -> dict:
         db.unlink()
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = config.camera_model
+    if config.focal_px is not None:  # prior at the SfM resolution; principal point at the centre
+        f = config.focal_px * sfm_w / size[0]
+        pp = f"{sfm_w / 2},{sfm_h / 2}"
+        reader.camera_params = f"{f},{pp}" if config.camera_model == "SIMPLE_PINHOLE" else f"{f},{f},{pp}"
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.use_gpu = False
     extraction.num_threads = config.num_threads
@@ -217,6 +223,8 @@ def _reconstruct(files: list[Path], work: Path, config: SfmConfig) -> dict:
     mapping.triangulation.random_seed = config.seed
     mapping.ba_use_gpu = False
     mapping.ba_refine_principal_point = False
+    mapping.ba_refine_focal_length = config.refine_focal
+    mapping.mapper.abs_pose_refine_focal_length = config.refine_focal
     mapping.max_runtime_seconds = int(config.max_runtime_seconds)
     sparse = work / "sparse"
     if sparse.exists():
@@ -310,6 +318,9 @@ def run_sfm(image_dir: str | Path, cache_dir: str | Path | None = None, *, width
     """
     image_dir = Path(image_dir)
     files = list_images(image_dir)
+    if not files and (image_dir / "images").is_dir():  # the usual layout <robot>/images/*.png
+        image_dir = image_dir / "images"
+        files = list_images(image_dir)
     if not files:
         raise DataError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {image_dir}")
     key = _cache_key(files, config)
