@@ -1,0 +1,156 @@
+"""Zenoh key expressions, built and parsed in this one place.
+
+Layout (``<swarm>`` is validated, robot ids and rounds are non-negative decimal integers)::
+
+    dinerf/<swarm>/alive/<id>           liveliness token of a running robot
+    dinerf/<swarm>/theta/<id>/<round>   parameter snapshot of robot <id> after <round>
+    dinerf/<swarm>/latest/<id>          queryable: the newest snapshot of <id> (late join, restart)
+    dinerf/<swarm>/status/<id>          telemetry
+    dinerf/<swarm>/keyframes/<id>       queryable: compact keyframe summary for coarse alignment
+
+Usage::
+
+    keys = Keys("lab")
+    keys.theta(3, 12)            # 'dinerf/lab/theta/3/12'
+    keys.parse('dinerf/lab/theta/3/12')   # ParsedKey(kind='theta', robot_id=3, round=12)
+
+:meth:`Keys.parse` raises :class:`ForeignKey` for anything that is not one of *our* keys (other
+swarm, unknown kind, non-canonical numbers), so a sender id is only ever taken from a key that
+this module would have built itself. Pure Python: no zenoh, no torch.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+ROOT = "dinerf"
+#: Largest robot id / round a key may carry (signed 32-bit, like the message header).
+MAX_ID = 2**31 - 1
+
+KIND_ALIVE = "alive"
+KIND_THETA = "theta"
+KIND_LATEST = "latest"
+KIND_STATUS = "status"
+KIND_KEYFRAMES = "keyframes"
+#: Key kinds and whether they carry a round after the robot id.
+KEY_KINDS: dict[str, bool] = {
+    KIND_ALIVE: False,
+    KIND_THETA: True,
+    KIND_LATEST: False,
+    KIND_STATUS: False,
+    KIND_KEYFRAMES: False,
+}
+
+_SWARM_RE = re.compile(r"[A-Za-z0-9_-]{1,64}")
+_CANONICAL_INT_RE = re.compile(r"0|[1-9][0-9]{0,9}")
+
+
+class ForeignKey(ValueError):
+    """A key expression that is not one of this swarm's keys."""
+
+
+@dataclass(frozen=True)
+class ParsedKey:
+    kind: str
+    robot_id: int
+    round: int | None = None
+
+
+def validate_swarm(swarm: str) -> str:
+    """Return ``swarm`` if it is a usable swarm name, else raise ValueError saying why."""
+    if not isinstance(swarm, str) or not _SWARM_RE.fullmatch(swarm):
+        raise ValueError(
+            f"invalid swarm name {swarm!r}: use 1-64 characters from A-Z a-z 0-9 _ - "
+            "(no '/', '*', '$', '?', '#', spaces)"
+        )
+    return swarm
+
+
+def _check_number(value: int, what: str) -> str:
+    if type(value) is not int or not 0 <= value <= MAX_ID:
+        raise ValueError(f"{what} must be an integer in [0, {MAX_ID}], got {value!r}")
+    return str(value)
+
+
+def _parse_number(text: str) -> int | None:
+    if not _CANONICAL_INT_RE.fullmatch(text):
+        return None
+    value = int(text)
+    return value if value <= MAX_ID else None
+
+
+class Keys:
+    """Key expressions of one swarm."""
+
+    def __init__(self, swarm: str):
+        self.swarm = validate_swarm(swarm)
+        self.prefix = f"{ROOT}/{self.swarm}"
+
+    def __repr__(self) -> str:
+        return f"Keys({self.swarm!r})"
+
+    def _robot(self, kind: str, robot_id: int) -> str:
+        return f"{self.prefix}/{kind}/{_check_number(robot_id, 'robot id')}"
+
+    # -- concrete keys
+    def alive(self, robot_id: int) -> str:
+        return self._robot(KIND_ALIVE, robot_id)
+
+    def theta(self, robot_id: int, round: int) -> str:
+        return f"{self._robot(KIND_THETA, robot_id)}/{_check_number(round, 'round')}"
+
+    def latest(self, robot_id: int) -> str:
+        return self._robot(KIND_LATEST, robot_id)
+
+    def status(self, robot_id: int) -> str:
+        return self._robot(KIND_STATUS, robot_id)
+
+    def keyframes(self, robot_id: int) -> str:
+        return self._robot(KIND_KEYFRAMES, robot_id)
+
+    # -- wildcards (for subscribers and queries)
+    def alive_all(self) -> str:
+        return f"{self.prefix}/{KIND_ALIVE}/*"
+
+    def theta_of(self, robot_id: int) -> str:
+        """Every round of one robot's snapshots: subscribe to this for each neighbour."""
+        return f"{self._robot(KIND_THETA, robot_id)}/*"
+
+    def theta_all(self) -> str:
+        return f"{self.prefix}/{KIND_THETA}/*/*"
+
+    def latest_all(self) -> str:
+        return f"{self.prefix}/{KIND_LATEST}/*"
+
+    def status_all(self) -> str:
+        return f"{self.prefix}/{KIND_STATUS}/*"
+
+    def keyframes_all(self) -> str:
+        return f"{self.prefix}/{KIND_KEYFRAMES}/*"
+
+    # -- parsing
+    def parse(self, key: str) -> ParsedKey:
+        """Parse one of this swarm's concrete keys; raise :class:`ForeignKey` otherwise."""
+        if not isinstance(key, str):
+            raise ForeignKey(f"key must be a string, got {type(key).__name__}")
+        parts = key.split("/")
+        if len(parts) < 4 or parts[0] != ROOT:
+            raise ForeignKey(f"not a dinerf key: {key[:200]!r}")
+        if parts[1] != self.swarm:
+            raise ForeignKey(f"key of swarm {parts[1][:64]!r}, not {self.swarm!r}: {key[:200]!r}")
+        kind = parts[2]
+        if kind not in KEY_KINDS:
+            raise ForeignKey(f"unknown key kind {kind[:64]!r} in {key[:200]!r}")
+        has_round = KEY_KINDS[kind]
+        if len(parts) != (5 if has_round else 4):
+            raise ForeignKey(f"wrong number of segments for a {kind} key: {key[:200]!r}")
+        robot_id = _parse_number(parts[3])
+        if robot_id is None:
+            raise ForeignKey(f"bad robot id {parts[3][:32]!r} in {key[:200]!r}")
+        round_ = None
+        if has_round:
+            round_ = _parse_number(parts[4])
+            if round_ is None:
+                raise ForeignKey(f"bad round {parts[4][:32]!r} in {key[:200]!r}")
+        return ParsedKey(kind, robot_id, round_)

@@ -1,0 +1,371 @@
+"""Typed messages that cross the network, and the reasons a received message is refused.
+
+Every message has the same header (see :class:`Header`): schema version, kind, swarm, sender,
+round, reference epoch, model signature, encoding, payload lengths and checksum. The header is
+built by :mod:`protocol.codec` on encode and attached to the message on decode; callers build
+messages without it.
+
+Kinds (``Header.kind``):
+
+- ``theta``     :class:`ThetaSnapshot`, a robot's model parameters after a round;
+- ``status``    :class:`Status`, telemetry for ``dinerf-agent status`` and reports;
+- ``keyframes`` :class:`KeyframeSummary`, compact features for a coarse initial alignment.
+
+:class:`ModelSpec` describes the parameters a snapshot must carry (ordered names, shapes,
+dtypes, plus architecture settings); its :meth:`ModelSpec.signature` goes into every snapshot so
+that robots with different models never mix parameters.
+
+:class:`Rejected` is the one exception raised for anything received that does not validate; its
+``reason`` is one of :data:`REJECT_REASONS` so the daemon can count refusals by cause.
+
+Pure Python + numpy: importing this module never imports zenoh or torch.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+
+#: Bumped whenever the header or a body changes incompatibly; peers on another version are refused.
+SCHEMA_VERSION = 1
+
+#: Largest round / epoch number accepted (fits a signed 32-bit int on every platform).
+MAX_ROUND = 2**31 - 1
+
+KIND_THETA = "theta"
+KIND_STATUS = "status"
+KIND_KEYFRAMES = "keyframes"
+KINDS = (KIND_THETA, KIND_STATUS, KIND_KEYFRAMES)
+
+WIRE_DTYPES = ("float32", "float16")
+COMPRESSIONS = ("zstd", "none")
+
+#: Every reason a received message can be refused for, with what it means.
+REJECT_REASONS: dict[str, str] = {
+    "garbage": "not a dinerf message at all, or its header cannot be parsed",
+    "bad_magic": "does not start with the dinerf magic bytes",
+    "bad_schema": "schema version differs from ours",
+    "bad_kind": "unknown message kind, or not the kind expected on this key",
+    "bad_header": "a header field is missing, unexpected or of the wrong type",
+    "wrong_swarm": "belongs to another swarm",
+    "unknown_sender": "sender id is not one we accept",
+    "sender_mismatch": "sender id in the header differs from the id in the key",
+    "bad_round": "round or epoch is not an integer in [0, MAX_ROUND], or differs from the key",
+    "bad_signature": "model signature differs from ours",
+    "bad_encoding": "unknown wire dtype or compression",
+    "bad_length": "a length does not match (truncated, padded, or inconsistent sizes)",
+    "bad_checksum": "payload checksum does not match",
+    "too_large": "declared or actual size is above our caps",
+    "decompression_bomb": "compressed frame would expand beyond what the header declares",
+    "bad_shape": "tensor names, dtypes or shapes differ from the model spec",
+    "bad_field": "a body field has the wrong type or is out of range",
+    "non_finite": "NaN or infinity among the values",
+    "stale_round": "round is older than the current one",
+    "too_far_ahead": "round is too far ahead of the current one to buffer",
+}
+
+
+class Rejected(Exception):
+    """A received message was refused. ``reason`` is a key of :data:`REJECT_REASONS`."""
+
+    def __init__(self, reason: str, detail: str = ""):
+        if reason not in REJECT_REASONS:
+            raise ValueError(f"unknown reject reason {reason!r}")
+        self.reason = reason
+        self.detail = detail
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+
+
+@dataclass(frozen=True)
+class Header:
+    """What every message says about itself, as read from (or written to) the wire."""
+
+    schema: int
+    kind: str
+    swarm: str
+    sender: int
+    round: int
+    epoch: int
+    signature: str
+    wire_dtype: str
+    compression: str
+    raw_length: int  # payload bytes after decompression
+    payload_length: int  # payload bytes on the wire
+    checksum: str  # blake2b-64 (hex) of the header (checksum zeroed) + wire payload
+
+
+# --------------------------------------------------------------------------- model spec
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One named parameter tensor: its shape and in-memory dtype."""
+
+    name: str
+    shape: tuple[int, ...]
+    dtype: str = "float32"
+
+    @property
+    def size(self) -> int:
+        return math.prod(self.shape)
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """The parameters a snapshot must carry, in order, plus architecture settings.
+
+    Two robots can exchange snapshots only when their :meth:`signature` is equal, which covers
+    both the tensor layout and the ``arch`` settings (hash-grid levels, MLP width ...), since the
+    same shapes with a different architecture would still mean different functions.
+    """
+
+    params: tuple[ParamSpec, ...]
+    arch: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        names = [p.name for p in self.params]
+        if len(set(names)) != len(names):
+            raise ValueError("ModelSpec has duplicate parameter names")
+        for p in self.params:
+            if not p.name or not isinstance(p.name, str):
+                raise ValueError(f"bad parameter name {p.name!r}")
+            if p.dtype != "float32":
+                raise ValueError(f"parameter {p.name}: only float32 parameters are supported")
+            if any(type(d) is not int or d < 0 for d in p.shape):
+                raise ValueError(f"parameter {p.name}: bad shape {p.shape!r}")
+        try:
+            json.dumps(dict(self.arch), sort_keys=True)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"ModelSpec.arch must be JSON-serialisable: {exc}") from None
+
+    @classmethod
+    def from_tensors(cls, tensors: Mapping[str, np.ndarray], arch: Mapping[str, Any] | None = None) -> "ModelSpec":
+        """Spec of a dict of arrays (order kept)."""
+        params = tuple(ParamSpec(name, tuple(int(d) for d in np.shape(a)), "float32") for name, a in tensors.items())
+        return cls(params, dict(arch or {}))
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.params)
+
+    @property
+    def num_values(self) -> int:
+        return sum(p.size for p in self.params)
+
+    def canonical_json(self) -> str:
+        doc = {
+            "params": [[p.name, list(p.shape), p.dtype] for p in self.params],
+            "arch": dict(self.arch),
+        }
+        return json.dumps(doc, sort_keys=True, separators=(",", ":"))
+
+    def signature(self) -> str:
+        """Short stable hash (16 hex chars of sha256) of the layout and the architecture."""
+        return hashlib.sha256(self.canonical_json().encode()).hexdigest()[:16]
+
+    def check(self, tensors: Mapping[str, np.ndarray]) -> None:
+        """Raise ValueError if ``tensors`` does not have exactly this layout (for our own sends)."""
+        if list(tensors.keys()) != list(self.names):
+            raise ValueError(f"tensor names/order {list(tensors)} differ from the spec {list(self.names)}")
+        for p in self.params:
+            a = tensors[p.name]
+            if tuple(np.shape(a)) != p.shape:
+                raise ValueError(f"tensor {p.name}: shape {np.shape(a)} != spec {p.shape}")
+
+
+# --------------------------------------------------------------------------- messages
+
+
+@dataclass
+class ThetaSnapshot:
+    """A robot's model parameters at the end of ``round`` (float32 in memory, ordered)."""
+
+    swarm: str
+    sender: int
+    round: int
+    epoch: int
+    signature: str
+    tensors: dict[str, np.ndarray]
+    header: Header | None = None  # set by decode
+
+    kind = KIND_THETA
+
+
+@dataclass
+class Status:
+    """Telemetry a robot publishes once per round (shown by ``dinerf-agent status``).
+
+    ``pose`` is the robot's estimate of its frame in the shared frame: log scale, axis-angle
+    phi (3), translation t (3). ``rejected`` counts refused messages by reason.
+    """
+
+    swarm: str
+    sender: int
+    round: int
+    epoch: int
+    reference: int
+    phase: str
+    loss: float | None
+    psnr: float | None
+    pose: list[float]
+    neighbours_heard: list[int]
+    bytes_in: int
+    bytes_out: int
+    rejected: dict[str, int]
+    alignment: str
+    wall_time: float
+    seconds_compute: float
+    seconds_wait: float
+    header: Header | None = None
+
+    kind = KIND_STATUS
+
+    #: Body fields (everything but the header-level ones) and the checker for each.
+    BODY_FIELDS = (
+        "reference",
+        "phase",
+        "loss",
+        "psnr",
+        "pose",
+        "neighbours_heard",
+        "bytes_in",
+        "bytes_out",
+        "rejected",
+        "alignment",
+        "wall_time",
+        "seconds_compute",
+        "seconds_wait",
+    )
+
+
+@dataclass
+class KeyframeSummary:
+    """Compact keyframe features for a coarse initial relative pose (never images).
+
+    ``descriptors`` [P, D] uint8 (binary, e.g. ORB) or float32; ``points`` [P, 3] float32, the
+    3-D points in the sender's frame; ``keyframe_index`` [P] int32, which keyframe each came
+    from. ``image_bytes`` is informational (how much image data this summary stands for).
+    """
+
+    swarm: str
+    sender: int
+    round: int
+    epoch: int
+    descriptors: np.ndarray
+    points: np.ndarray
+    keyframe_index: np.ndarray
+    image_bytes: int = 0
+    header: Header | None = None
+
+    kind = KIND_KEYFRAMES
+
+
+Message = ThetaSnapshot | Status | KeyframeSummary
+
+MESSAGE_TYPES: dict[str, type] = {KIND_THETA: ThetaSnapshot, KIND_STATUS: Status, KIND_KEYFRAMES: KeyframeSummary}
+
+
+# --------------------------------------------------------------------------- field checks
+
+
+def is_int(x: Any) -> bool:
+    """True for a real int (bools are ints in Python but never valid here)."""
+    return type(x) is int
+
+
+def is_number(x: Any) -> bool:
+    return type(x) in (int, float)
+
+
+def check_status_body(body: Any) -> dict[str, Any]:
+    """Validate a decoded Status body (a dict from msgpack); raise Rejected('bad_field'|...)."""
+    if not isinstance(body, dict):
+        raise Rejected("bad_field", "status body is not a map")
+    keys = set(body)
+    expected = set(Status.BODY_FIELDS)
+    if keys != expected:
+        missing, extra = sorted(expected - keys), sorted(map(str, keys - expected))
+        raise Rejected("bad_field", f"status fields missing {missing} extra {extra}")
+
+    def bad(name: str, what: str) -> Rejected:
+        return Rejected("bad_field", f"status.{name}: {what}")
+
+    def finite_number(name: str, allow_none: bool = False) -> float | None:
+        v = body[name]
+        if v is None and allow_none:
+            return None
+        if not is_number(v):
+            raise bad(name, f"expected a number, got {type(v).__name__}")
+        if not math.isfinite(v):
+            raise Rejected("non_finite", f"status.{name} = {v}")
+        return float(v)
+
+    def count(name: str) -> int:
+        v = body[name]
+        if not is_int(v) or v < 0 or v > 2**63 - 1:
+            raise bad(name, "expected a non-negative integer")
+        return v
+
+    def text(name: str, limit: int = 256) -> str:
+        v = body[name]
+        if not isinstance(v, str) or len(v) > limit:
+            raise bad(name, f"expected a string of at most {limit} characters")
+        return v
+
+    out: dict[str, Any] = {}
+    ref = body["reference"]
+    if not is_int(ref) or not 0 <= ref <= MAX_ROUND:
+        raise bad("reference", "expected a robot id")
+    out["reference"] = ref
+    out["phase"] = text("phase")
+    out["alignment"] = text("alignment")
+    out["loss"] = finite_number("loss", allow_none=True)
+    out["psnr"] = finite_number("psnr", allow_none=True)
+    pose = body["pose"]
+    if not isinstance(pose, list) or len(pose) != 7 or not all(is_number(v) for v in pose):
+        raise bad("pose", "expected a list of 7 numbers (log_scale, phi xyz, t xyz)")
+    if not all(math.isfinite(v) for v in pose):
+        raise Rejected("non_finite", "status.pose")
+    out["pose"] = [float(v) for v in pose]
+    heard = body["neighbours_heard"]
+    if not isinstance(heard, list) or not all(is_int(v) and 0 <= v <= MAX_ROUND for v in heard):
+        raise bad("neighbours_heard", "expected a list of robot ids")
+    out["neighbours_heard"] = list(heard)
+    out["bytes_in"] = count("bytes_in")
+    out["bytes_out"] = count("bytes_out")
+    rej = body["rejected"]
+    if not isinstance(rej, dict) or not all(
+        isinstance(k, str) and len(k) <= 64 and is_int(v) and v >= 0 for k, v in rej.items()
+    ):
+        raise bad("rejected", "expected a map reason -> non-negative count")
+    out["rejected"] = dict(rej)
+    for name in ("wall_time", "seconds_compute", "seconds_wait"):
+        v = finite_number(name)
+        if v is None or v < 0:
+            raise bad(name, "expected a non-negative number")
+        out[name] = v
+    return out
+
+
+def status_body(msg: Status) -> dict[str, Any]:
+    """The body fields of a Status, as plain Python values ready for msgpack."""
+    return {
+        "reference": int(msg.reference),
+        "phase": str(msg.phase),
+        "loss": None if msg.loss is None else float(msg.loss),
+        "psnr": None if msg.psnr is None else float(msg.psnr),
+        "pose": [float(v) for v in msg.pose],
+        "neighbours_heard": [int(v) for v in msg.neighbours_heard],
+        "bytes_in": int(msg.bytes_in),
+        "bytes_out": int(msg.bytes_out),
+        "rejected": {str(k): int(v) for k, v in msg.rejected.items()},
+        "alignment": str(msg.alignment),
+        "wall_time": float(msg.wall_time),
+        "seconds_compute": float(msg.seconds_compute),
+        "seconds_wait": float(msg.seconds_wait),
+    }

@@ -1,0 +1,147 @@
+"""Per-round mailbox and the round barrier with a deadline.
+
+Zenoh callbacks :meth:`Mailbox.offer` what arrives (decoded snapshots, or raw bytes to decode
+later); the daemon's round loop calls :meth:`Mailbox.wait` for the current round and then
+:meth:`Mailbox.advance`::
+
+    box = Mailbox(max_ahead=4)
+    box.offer(sender=2, round=7, item=snapshot)          # from a Zenoh thread
+    got = box.wait(7, expected=lambda: membership.live_neighbours, timeout_s=30.0)
+    got.items        # {sender: item} for round 7
+    got.waited_s     # seconds spent waiting (network time of the round)
+    box.advance(8)   # round 7 and older are dropped; 8 .. 8+max_ahead stay buffered
+
+Rules:
+
+- a round older than the current round is ``stale_round`` and refused;
+- a round more than ``max_ahead`` past the current round is ``too_far_ahead`` and refused
+  (bounded memory: at most ``max_ahead + 1`` rounds per sender are held);
+- rounds in between are buffered, so a fast neighbour's next snapshot is not lost;
+- the same (sender, round) offered again **replaces** the earlier item: the newest copy is what
+  the sender now stands by (e.g. it re-ran the round after a restart). Items already returned
+  by :meth:`wait` are not affected.
+
+``expected()`` is re-evaluated on every wake-up, since neighbours may die during the wait;
+:meth:`notify` wakes waiters when membership changes. ``expected`` is called without the
+mailbox lock held, so it may take other locks (no lock-order deadlock with membership).
+
+Thread-safe; pure Python.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Generic, Iterable, TypeVar
+
+from protocol.messages import Rejected
+
+T = TypeVar("T")
+
+
+@dataclass
+class WaitResult(Generic[T]):
+    """What :meth:`Mailbox.wait` collected, and how long it took."""
+
+    round: int
+    items: dict[int, T]
+    waited_s: float
+    complete: bool  # every expected sender delivered before the deadline
+    missing: frozenset[int] = field(default_factory=frozenset)  # expected at return time, not delivered
+
+
+class Mailbox(Generic[T]):
+    """Items keyed by (sender, round), with a barrier on one round."""
+
+    def __init__(self, max_ahead: int, current_round: int = 0, poll_s: float = 0.5):
+        if type(max_ahead) is not int or max_ahead < 0:
+            raise ValueError("max_ahead must be a non-negative int")
+        if type(current_round) is not int or current_round < 0:
+            raise ValueError("current_round must be a non-negative int")
+        self.max_ahead = max_ahead
+        self._current = current_round
+        self._poll_s = poll_s  # safety net if someone forgets notify() on membership changes
+        self._items: dict[int, dict[int, T]] = {}  # round -> sender -> item
+        self._newest: dict[int, tuple[int, T]] = {}  # sender -> (round, item), survives advance()
+        self._generation = 0  # bumped by notify(): tells a waiter to re-read expected()
+        self._cond = threading.Condition()
+
+    @property
+    def current_round(self) -> int:
+        with self._cond:
+            return self._current
+
+    def offer(self, sender: int, round: int, item: T) -> None:
+        """Store an item for (sender, round). Raises Rejected('stale_round'|'too_far_ahead')."""
+        with self._cond:
+            if round < self._current:
+                raise Rejected("stale_round", f"round {round} from {sender}, current round {self._current}")
+            if round > self._current + self.max_ahead:
+                raise Rejected("too_far_ahead",
+                               f"round {round} from {sender}, current {self._current} + max_ahead {self.max_ahead}")
+            self._items.setdefault(round, {})[sender] = item
+            newest = self._newest.get(sender)
+            if newest is None or round >= newest[0]:
+                self._newest[sender] = (round, item)
+            self._cond.notify_all()
+
+    def notify(self) -> None:
+        """Wake waiters so they re-evaluate ``expected()`` (call on every membership change)."""
+        with self._cond:
+            self._generation += 1
+            self._cond.notify_all()
+
+    def wait(self, round: int, expected: Callable[[], Iterable[int]], timeout_s: float) -> WaitResult[T]:
+        """Block until every id in ``expected()`` has an item for ``round``, or ``timeout_s`` passes.
+
+        Returns what arrived for that round (possibly from senders no longer expected, which
+        the caller may still use or ignore).
+        """
+        start = time.monotonic()
+        deadline = start + max(0.0, timeout_s)
+        while True:
+            with self._cond:
+                generation = self._generation
+            wanted = frozenset(expected())  # outside the lock: may take other locks
+            with self._cond:
+                got = self._items.get(round, {})
+                missing = wanted - got.keys()
+                now = time.monotonic()
+                if not missing or now >= deadline:
+                    return WaitResult(round, dict(got), now - start, not missing, frozenset(missing))
+                if self._generation == generation:  # else membership changed meanwhile: re-read now
+                    self._cond.wait(min(deadline - now, self._poll_s))
+
+    def advance(self, round: int) -> None:
+        """Make ``round`` current; drop every item of older rounds."""
+        with self._cond:
+            if round < self._current:
+                raise ValueError(f"cannot go back from round {self._current} to {round}")
+            self._current = round
+            for r in [r for r in self._items if r < round]:
+                del self._items[r]
+            self._cond.notify_all()
+
+    def items(self, round: int) -> dict[int, T]:
+        """What is held for ``round`` now, without waiting."""
+        with self._cond:
+            return dict(self._items.get(round, {}))
+
+    def newest_round(self, sender: int) -> int | None:
+        """Newest round ever offered by ``sender`` (accepted offers only), or None."""
+        with self._cond:
+            newest = self._newest.get(sender)
+            return None if newest is None else newest[0]
+
+    def newest_items(self) -> dict[int, tuple[int, T]]:
+        """sender -> (round, item) of the newest accepted offer: for catching up after a restart."""
+        with self._cond:
+            return dict(self._newest)
+
+    def forget(self, sender: int) -> None:
+        """Drop everything from one sender (e.g. it left the swarm)."""
+        with self._cond:
+            self._newest.pop(sender, None)
+            for per_round in self._items.values():
+                per_round.pop(sender, None)

@@ -1,0 +1,59 @@
+"""Key expressions: built in one place, parsed back, foreign keys refused."""
+
+import pytest
+
+from protocol.keys import ForeignKey, Keys, ParsedKey
+
+
+def test_build_and_parse_round_trip():
+    k = Keys("lab-1_A")
+    assert k.alive(3) == "dinerf/lab-1_A/alive/3"
+    assert k.theta(3, 12) == "dinerf/lab-1_A/theta/3/12"
+    assert k.latest(0) == "dinerf/lab-1_A/latest/0"
+    assert k.status(7) == "dinerf/lab-1_A/status/7"
+    assert k.keyframes(2) == "dinerf/lab-1_A/keyframes/2"
+    assert k.alive_all() == "dinerf/lab-1_A/alive/*"
+    assert k.theta_of(4) == "dinerf/lab-1_A/theta/4/*"
+    assert k.status_all() == "dinerf/lab-1_A/status/*"
+    assert k.parse(k.theta(3, 12)) == ParsedKey("theta", 3, 12)
+    assert k.parse(k.alive(0)) == ParsedKey("alive", 0, None)
+    for build, kind in [(k.latest, "latest"), (k.status, "status"), (k.keyframes, "keyframes")]:
+        assert k.parse(build(2**31 - 1)) == ParsedKey(kind, 2**31 - 1, None)
+
+
+@pytest.mark.parametrize("swarm", ["", "a/b", "a*", "$x", "a?b", "a#", "with space", "x" * 65, None, 3])
+def test_invalid_swarm_names_are_refused(swarm):
+    with pytest.raises(ValueError, match="swarm"):
+        Keys(swarm)
+
+
+@pytest.mark.parametrize("robot_id", [-1, 1.0, True, "3", 2**31])
+def test_invalid_ids_are_refused_when_building(robot_id):
+    with pytest.raises(ValueError):
+        Keys("s").alive(robot_id)
+    with pytest.raises(ValueError):
+        Keys("s").theta(0, robot_id)
+
+
+@pytest.mark.parametrize("key", [
+    "dinerf/other/theta/1/2",      # other swarm
+    "robots/s/theta/1/2",          # other root
+    "dinerf/s/weights/1",          # unknown kind
+    "dinerf/s/theta/1",            # round missing
+    "dinerf/s/alive/1/2",          # extra segment
+    "dinerf/s/theta/01/2",         # non-canonical id
+    "dinerf/s/theta/-1/2",
+    "dinerf/s/theta/1/x",
+    "dinerf/s/theta/*/2",          # wildcard is not a concrete key
+    "dinerf/s/alive/99999999999",  # out of range
+    "dinerf/s",
+    "",
+])
+def test_foreign_keys_are_refused(key):
+    with pytest.raises(ForeignKey):
+        Keys("s").parse(key)
+
+
+def test_parse_refuses_non_strings():
+    with pytest.raises(ForeignKey):
+        Keys("s").parse(None)
