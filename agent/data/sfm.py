@@ -60,6 +60,7 @@ class SfmConfig:
     background: float = 1.0  # RGBA images are composited onto this grey level before SfM
     min_registered: int = 3  # fewer registered images than this is an error ...
     min_registered_fraction: float = 0.3  # ... and so is fewer than this fraction of the images
+    abs_pose_min_inliers: int = 15  # COLMAP's default 30 drops views of small, sparse robot sets
     depth_min_track_length: int = 2  # SfM points seen by fewer images do not enter the depth prior
     depth_max_reproj_error: float = 2.0  # px; nor do points with a larger mean reprojection error
     max_runtime_seconds: int = -1  # mapper time limit, -1 = none
@@ -221,6 +222,7 @@ def _reconstruct(files: list[Path], work: Path, config: SfmConfig) -> dict:
     mapping.mapper.random_seed = config.seed
     mapping.mapper.num_threads = config.num_threads
     mapping.triangulation.random_seed = config.seed
+    mapping.mapper.abs_pose_min_num_inliers = config.abs_pose_min_inliers
     mapping.ba_use_gpu = False
     mapping.ba_refine_principal_point = False
     mapping.ba_refine_focal_length = config.refine_focal

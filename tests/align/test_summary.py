@@ -1,0 +1,83 @@
+"""Keyframe summaries from rendered views, and the coarse estimate between two robots end to end."""
+
+import numpy as np
+import pytest
+import torch
+
+from agent import geometry as G
+from agent.align import AlignConfig, _project, estimate_relative, summarise
+from tests.align.scene import TexturedScene, render_views, ring_cameras
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return TexturedScene(0)
+
+
+def _robot(scene, azimuths, t_local_from_world=None):
+    views = render_views(scene, ring_cameras(azimuths), 200, 150, 190.0)
+    if t_local_from_world is not None:  # the robot's own frame: cameras and depth move with it
+        t = torch.as_tensor(t_local_from_world, dtype=torch.float64)
+        views.c2w = G.transform_c2w(t, views.c2w.double()).float()
+        views.depth = views.depth * float(G.sim3_decompose(t)[0])
+    return views
+
+
+def _depth_error(views, summary):
+    """Relative z-depth error of each summary point against the rendered depth in its keyframe."""
+    errs = []
+    for slot, name in enumerate(summary.meta["keyframes"]):
+        i = views.names.index(name)
+        pts = summary.points[summary.keyframe_index == slot].astype(np.float64)
+        uv, z = _project(views.c2w[i].double().numpy(), views.intrinsics[i].double().numpy(), pts)
+        px = np.clip(np.floor(uv + 0.5).astype(int), 0, [views.width - 1, views.height - 1])
+        true = views.depth[i].numpy()[px[:, 1], px[:, 0]]
+        ok = true > 0
+        errs.append(np.abs(z[ok] - true[ok]) / true[ok])
+    return np.concatenate(errs)
+
+
+def test_summary_is_compact_and_its_points_lie_on_the_surface(scene):
+    views = _robot(scene, np.arange(0, 160, 8))
+    cfg = AlignConfig(num_keyframes=6)
+    summ = summarise(views, "triangulate", cfg)
+    image_bytes = views.images.numel()  # as 8-bit files: 1 byte per channel value
+    assert 200 <= len(summ) and summ.nbytes <= cfg.max_bytes and summ.nbytes < image_bytes / 4
+    assert summ.descriptors.dtype == np.uint8 and summ.points.dtype == np.float32
+    assert set(np.unique(summ.keyframe_index)) == set(range(6))  # every keyframe contributes
+    err = _depth_error(views, summ)
+    assert np.median(err) < 0.01 and (err < 0.05).mean() > 0.9
+    # A tight byte budget is honoured, spread over the keyframes.
+    small = summarise(views, "triangulate", AlignConfig(num_keyframes=6, max_bytes=20_000))
+    assert small.nbytes <= 20_000 and len(np.unique(small.keyframe_index)) == 6
+    # Depth source: the rendered (metric) depth places the points exactly, on more features.
+    dsum = summarise(views, "auto", cfg)
+    assert dsum.meta["points_source"] == "depth" and dsum.meta["depth"] > 0
+    assert np.median(_depth_error(views, dsum)) < 0.005
+    # Deterministic.
+    again = summarise(views, "triangulate", cfg)
+    assert np.array_equal(again.points, summ.points) and np.array_equal(again.descriptors, summ.descriptors)
+
+
+@pytest.mark.parametrize("with_scale", [True, False])
+def test_two_robots_in_their_own_frames_are_aligned(scene, with_scale):
+    g = torch.Generator().manual_seed(7)
+    t_b = torch.eye(4, dtype=torch.float64)  # b's local frame from the world: 150 deg turn, far away
+    scale = 0.3 if with_scale else 1.0
+    t_b[:3, :3] = scale * G.random_rotation(g, 180.0)
+    t_b[:3, 3] = torch.tensor([6.0, -9.0, 4.0], dtype=torch.float64)
+    a = _robot(scene, np.arange(0, 150, 8))  # the reference: world frame
+    b = _robot(scene, np.arange(100, 250, 8), t_b)  # 50 deg of shared arc, no identical images
+    cfg = AlignConfig(num_keyframes=8, with_scale=with_scale)
+    res = estimate_relative(summarise(a, "triangulate", cfg), summarise(b, "triangulate", cfg), cfg)
+    assert res.success, res.reason
+    err = G.pose_error(torch.from_numpy(res.T_a_from_b), G.sim3_inverse(t_b))
+    assert err["rotation_deg"] < 1.0 and err["scale_rel"] < 0.01 and err["translation"] < 0.2, err
+
+
+def test_robots_of_different_scenes_do_not_align(scene):
+    a = _robot(scene, np.arange(0, 150, 8))
+    other = _robot(TexturedScene(1), np.arange(0, 150, 8))  # same cameras, different world
+    cfg = AlignConfig(num_keyframes=8)
+    res = estimate_relative(summarise(a, "triangulate", cfg), summarise(other, "triangulate", cfg), cfg)
+    assert not res.success and res.T_a_from_b is None, res
