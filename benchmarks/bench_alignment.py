@@ -1,0 +1,197 @@
+"""Coarse initial alignment on lego: success rate and error of the coarse step alone.
+
+Two robots split lego's 100 training views into two azimuth sectors that share ``--overlap`` of
+each sector (views in the shared arc belong to both robots, as in the sector splits of the
+Di-NeRF paper). Robot A is the reference (true frame); robot B's views are moved into a random
+local frame: rotation uniform in axis with an angle uniform in [0, 180] deg, translation uniform
+in direction with a length uniform in [0, 3 scene radii] (scene radius = the radius of lego's
+camera sphere, ~4.0 units), and with ``--scale`` a scale log-uniform in [1/2, 2]. The sector start
+is random per trial too, so the 20 trials see 20 different pairs of sectors.
+
+Printed per trial and overall: whether the coarse step succeeded, rotation/translation/scale
+error of T_a_from_b against the truth, the mean error of B's camera centres mapped into A's frame
+(what the NeRF actually sees), and the summary bytes next to the robot's image bytes. The joint
+NeRF refinement is not run here.
+
+Modes: ``--feature-width`` is the resolution the features are computed at (100 = the training
+resolution; 400 = the originals in ../shared/data). ``--disjoint`` drops the shared views from
+B (no image in common, only a shared region). ``--sfm`` gives each robot images only: it runs its
+own SfM (agent.data.sfm, cached under --cache), so its local frame and scale are SfM's, and the
+truth is the SfM->world similarity of each robot (Umeyama on its camera centres).
+
+    .venv/bin/python benchmarks/bench_alignment.py --feature-width 100
+    .venv/bin/python benchmarks/bench_alignment.py --feature-width 400
+    .venv/bin/python benchmarks/bench_alignment.py --feature-width 400 --sfm --trials 5
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from agent import geometry as G  # noqa: E402
+from agent.align import AlignConfig, estimate_relative, summarise  # noqa: E402
+from agent.data.views import Views  # noqa: E402
+
+
+def sector_split(c2w: torch.Tensor, start_deg: float, overlap: float) -> tuple[list[int], list[int]]:
+    """Two azimuth sectors covering the circle, each sharing ``overlap`` of its width with the other."""
+    az = torch.rad2deg(torch.atan2(c2w[:, 1, 3], c2w[:, 0, 3])).numpy()
+    width = 360.0 / (2.0 - overlap)
+    a = [i for i in range(len(az)) if (az[i] - start_deg) % 360.0 < width]
+    b = [i for i in range(len(az)) if (az[i] - start_deg - width * (1 - overlap)) % 360.0 < width]
+    return a, b
+
+
+def random_offset(g: torch.Generator, radius: float, with_scale: bool) -> torch.Tensor:
+    """T_local_from_world [4, 4] float64: a robot's unknown local frame."""
+    out = torch.eye(4, dtype=torch.float64)
+    rot = G.random_rotation(g, 180.0)
+    scale = math.exp(float(torch.empty((), dtype=torch.float64).uniform_(-math.log(2), math.log(2), generator=g))) \
+        if with_scale else 1.0
+    direction = torch.randn(3, generator=g, dtype=torch.float64)
+    length = float(torch.rand((), generator=g, dtype=torch.float64)) * 3.0 * radius
+    out[:3, :3] = scale * rot
+    out[:3, 3] = direction / direction.norm() * length
+    return out
+
+
+def moved(views: Views, t: torch.Tensor) -> Views:
+    out = views.subset(list(range(len(views))))
+    out.c2w = G.transform_c2w(t, views.c2w.double()).float()
+    return out
+
+
+def file_bytes(data: Path, names: list[str]) -> int:
+    return sum((data / "train" / f"{n}.png").stat().st_size for n in names)
+
+
+def sfm_robot(data: Path, names: list[str], cache: Path, feature_width: int) -> tuple[Views, torch.Tensor]:
+    """Images-only robot: own SfM on its original files -> (views in SfM frame, T_world_from_sfm)."""
+    from agent.data.loaders import load_views
+    from agent.data.sfm import run_sfm
+
+    key = f"{len(names)}_{abs(hash(tuple(names))) % 10**10}"
+    folder = cache / "images" / key
+    folder.mkdir(parents=True, exist_ok=True)
+    for n in names:
+        dst = folder / f"{n}.png"
+        if not dst.exists():
+            dst.symlink_to(data / "train" / f"{n}.png")
+    views = run_sfm(folder, cache / "sfm" / key, width=feature_width)
+    truth = load_views(data)
+    true_c2w = truth.c2w[[truth.names.index(n) for n in views.names]].double()
+    t_world_from_sfm = G.umeyama(views.c2w[:, :3, 3].double(), true_c2w[:, :3, 3])
+    return views, t_world_from_sfm
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=ROOT.parent / "shared/data/nerf_synthetic/lego")
+    ap.add_argument("--feature-width", type=int, default=100, help="resolution of the images features come from")
+    ap.add_argument("--trials", type=int, default=20)
+    ap.add_argument("--overlap", type=float, default=0.2)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--scale", action=argparse.BooleanOptionalAction, default=True, help="random scale (Sim(3))")
+    ap.add_argument("--disjoint", action="store_true", help="B keeps none of A's views")
+    ap.add_argument("--sfm", action="store_true", help="images-only robots with their own SfM")
+    ap.add_argument("--cache", type=Path, default=ROOT / "runs/bench_alignment")
+    ap.add_argument("--keyframes", type=int, default=AlignConfig.num_keyframes)
+    args = ap.parse_args()
+    torch.set_num_threads(2)
+
+    if not args.data.is_dir():
+        sys.exit(f"{args.data} is absent: this benchmark needs lego from ../shared/data")
+    from agent.data.loaders import load_views
+
+    t0 = time.perf_counter()
+    views = load_views(args.data, width=args.feature_width)
+    print(f"lego: {len(views)} views at {views.width}x{views.height} for features "
+          f"(loaded in {time.perf_counter() - t0:.1f}s); overlap {args.overlap:.0%} of each sector; "
+          f"{'Sim(3)' if args.scale or args.sfm else 'SE(3)'}; {'disjoint images' if args.disjoint else 'shared views in the overlap'}"
+          f"{'; per-robot SfM' if args.sfm else '; true local poses'}")
+    centres = views.c2w[:, :3, 3].double()
+    radius = float(centres.norm(dim=1).median())
+    print(f"scene radius (camera sphere) {radius:.3f}; offsets: rotation U[0,180] deg, translation U[0,{3 * radius:.1f}]")
+    cfg = AlignConfig(num_keyframes=args.keyframes, with_scale=args.scale or args.sfm, seed=args.seed)
+
+    g = torch.Generator().manual_seed(args.seed)
+    rows = []
+    header = ("trial  nA  nB shared  ok  inl/match  rot_deg   t_err  scale%  cam_err  init_rot init_t  "
+              "sumA_KB sumB_KB  imgB_KB(png) imgB_KB(raw@100)  t_sum  t_est  reason")
+    print(header)
+    for trial in range(args.trials):
+        start = float(torch.rand((), generator=g)) * 360.0 - 180.0
+        offset = random_offset(g, radius, args.scale)
+        ia, ib = sector_split(views.c2w, start, args.overlap)
+        shared = len(set(ia) & set(ib))
+        if args.disjoint:
+            ib = [i for i in ib if i not in set(ia)]
+        names_b = [views.names[i] for i in ib]
+        if args.sfm:
+            va, w_from_a = sfm_robot(args.data, [views.names[i] for i in ia], args.cache, args.feature_width)
+            vb, w_from_b = sfm_robot(args.data, names_b, args.cache, args.feature_width)
+            truth = G.sim3_inverse(w_from_a) @ w_from_b  # T_a_from_b between the two SfM frames
+            true_b_centres = G.transform_points(w_from_b, vb.c2w[:, :3, 3].double())  # world = A's truth frame
+            a_from_world = G.sim3_inverse(w_from_a)
+        else:
+            va = views.subset(ia)
+            vb = moved(views.subset(ib), offset)
+            truth = G.sim3_inverse(offset)
+            true_b_centres = views.c2w[ib, :3, 3].double()
+            a_from_world = torch.eye(4, dtype=torch.float64)
+        t1 = time.perf_counter()
+        sa, sb = summarise(va, "triangulate", cfg), summarise(vb, "triangulate", cfg)
+        t2 = time.perf_counter()
+        res = estimate_relative(sa, sb, cfg)
+        t3 = time.perf_counter()
+        init = G.pose_error(torch.eye(4, dtype=torch.float64), truth)
+        row = {"ok": res.success, "init_rot": init["rotation_deg"], "init_t": init["translation"],
+               "sum_a": sa.nbytes, "sum_b": sb.nbytes, "png_b": file_bytes(args.data, names_b),
+               "raw_b": len(names_b) * 100 * 100 * 4, "t_sum": (t2 - t1) / 2, "t_est": t3 - t2}
+        if res.success:
+            est = torch.from_numpy(res.T_a_from_b)
+            err = G.pose_error(est, truth)
+            # B's cameras mapped into A's frame with the estimate vs where they truly are.
+            cam = (G.transform_points(est, vb.c2w[:, :3, 3].double())
+                   - G.transform_points(a_from_world, true_b_centres)).norm(dim=1).mean()
+            row.update(rot=err["rotation_deg"], t=err["translation"], scale=100 * err["scale_rel"], cam=float(cam))
+        rows.append(row)
+        fmt = (lambda k, f: f.format(row[k]) if k in row else "-".rjust(len(f.format(0.0))))
+        print(f"{trial:5d} {len(ia):3d} {len(ib):3d} {shared:6d} {'yes' if res.success else ' no'} "
+              f"{res.inliers:4d}/{res.matches:<5d} {fmt('rot', '{:7.3f}')} {fmt('t', '{:7.4f}')} "
+              f"{fmt('scale', '{:6.3f}')} {fmt('cam', '{:8.4f}')} "
+              f"{row['init_rot']:8.1f} {row['init_t']:6.2f} {row['sum_a'] / 1e3:8.1f} {row['sum_b'] / 1e3:7.1f} "
+              f"{row['png_b'] / 1e3:13.1f} {row['raw_b'] / 1e3:16.1f} {row['t_sum']:6.2f} {row['t_est']:6.2f}  "
+              f"{'' if res.success else res.reason}", flush=True)
+
+    ok = [r for r in rows if r["ok"]]
+    n = len(rows)
+    print(f"\ncoarse step alone: success {len(ok)}/{n} ({100 * len(ok) / n:.0f}%)")
+    if ok:
+        for key, unit in (("rot", "deg"), ("t", "units"), ("scale", "%"), ("cam", "units")):
+            vals = np.array([r[key] for r in ok])
+            print(f"  {key:5s} error {unit:10s} median {np.median(vals):.4f}  mean {vals.mean():.4f}  max {vals.max():.4f}")
+        within = sum(r["rot"] <= 1.0 and r["t"] <= 0.02 for r in ok)
+        print(f"  already within 1 deg and 0.02 units before any refinement: {within}/{n}")
+    basin = sum(r["init_rot"] <= 45.0 and r["init_t"] <= 1.0 for r in rows)
+    print(f"identity start within the paper's basin (<= 45 deg and <= 1 unit): {basin}/{n}")
+    sums = np.array([r["sum_b"] for r in rows])
+    print(f"summary bytes per robot: median {np.median(sums) / 1e3:.1f} KB, max {sums.max() / 1e3:.1f} KB; "
+          f"robot images: median {np.median([r['png_b'] for r in rows]) / 1e6:.2f} MB as 400x400 PNG files, "
+          f"{np.median([r['raw_b'] for r in rows]) / 1e6:.2f} MB raw RGBA at 100x100")
+    print(f"time per robot summary {np.mean([r['t_sum'] for r in rows]):.2f} s, per estimate "
+          f"{np.mean([r['t_est'] for r in rows]):.2f} s (2 threads)")
+
+
+if __name__ == "__main__":
+    main()
