@@ -1,0 +1,303 @@
+"""Roles for the multi-process Zenoh tests: ``python -m tests.protocol.peers ROLE [options]``.
+
+Each role prints one JSON object per line on stdout ({"event": ..., ...}) so the test can follow
+it, and exits by itself after ``--timeout`` seconds whatever happens, so a hung Zenoh session
+can never outlive the test run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import sys
+import threading
+import time
+
+import numpy as np
+
+from protocol import codec
+from protocol.keys import ForeignKey
+from protocol.messages import ModelSpec, Rejected, Status, ThetaSnapshot
+from protocol.rounds import Mailbox
+from protocol.transport import TransportConfig, ZenohTransport
+from tests.protocol import helpers
+
+_print_lock = threading.Lock()
+
+
+def emit(event: str, **fields) -> None:
+    with _print_lock:
+        print(json.dumps({"event": event, "t": time.monotonic(), **fields}), flush=True)
+
+
+def big_tensors(size_mb: int, seed: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    values = size_mb * 1024 * 1024 // 4
+    return {
+        "grid.table": rng.standard_normal(values - 64 * 64, dtype=np.float32),
+        "mlp.0.weight": rng.standard_normal((64, 64), dtype=np.float32),
+    }
+
+
+def digest(tensors: dict[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    for name, t in tensors.items():
+        h.update(name.encode())
+        h.update(np.ascontiguousarray(t, dtype="<f4").tobytes())
+    return h.hexdigest()
+
+
+def transport(args, robot_id: int) -> ZenohTransport:
+    listen = [f"tcp/127.0.0.1:{args.listen}"] if args.listen else []
+    connect = [f"tcp/127.0.0.1:{p}" for p in args.connect]
+    cfg = TransportConfig(listen=listen, connect=connect, multicast_scouting=False, lease_ms=2000)
+    return ZenohTransport(cfg, helpers.keys(), robot_id).open()
+
+
+def wait_for_alive(net: ZenohTransport, robot_id: int, timeout: float) -> bool:
+    seen = threading.Event()
+    net.watch_alive(lambda ids: seen.set() if robot_id in ids else None)
+    return seen.wait(timeout)
+
+
+def wait_for_stdin_close() -> None:
+    sys.stdin.read()
+
+
+# ----------------------------------------------------------------------------- roles
+
+
+def role_big_publisher(args) -> None:
+    """Robot 0: publish one large snapshot with BLOCK once robot 1 is alive."""
+    tensors = big_tensors(args.size_mb, args.seed)
+    spec = ModelSpec.from_tensors(tensors, {"test": "big"})
+    with transport(args, 0) as net:
+        net.declare_alive()
+        emit("ready")
+        if not wait_for_alive(net, 1, 20):
+            emit("error", detail="receiver never appeared")
+            return
+        msg = ThetaSnapshot(helpers.SWARM, 0, 1, 0, spec.signature(), tensors)
+        t0 = time.monotonic()
+        data = codec.encode(msg, compression=args.compression, level=1)
+        t1 = time.monotonic()
+        net.publish(net.keys.theta(0, 1), data)
+        t2 = time.monotonic()
+        emit("published", bytes=len(data), encode_s=t1 - t0, put_s=t2 - t1, t_put=t1)
+        wait_for_stdin_close()  # stay up until the test is done, so the transfer can finish
+
+
+def role_big_receiver(args) -> None:
+    """Robot 1: receive robot 0's snapshot, decode it and check it bit for bit."""
+    expected = big_tensors(args.size_mb, args.seed)
+    spec = ModelSpec.from_tensors(expected, {"test": "big"})
+    expect = codec.Expectation(helpers.SWARM, spec, frozenset({0}))
+    want = digest(expected)
+    del expected
+    done = threading.Event()
+
+    def on_theta(key: str, data: bytes) -> None:
+        t_in = time.monotonic()
+        try:
+            msg = codec.decode(data, expect, kind="theta", key=net.keys.parse(key))
+            ok = digest(msg.tensors) == want
+            emit("received", bytes=len(data), ok=ok, round=msg.round, t_in=t_in,
+                 decode_s=time.monotonic() - t_in)
+        except Rejected as exc:
+            emit("received", bytes=len(data), ok=False, reason=exc.reason, detail=exc.detail, t_in=t_in)
+        done.set()
+
+    with transport(args, 1) as net:
+        net.subscribe(net.keys.theta_of(0), on_theta)
+        net.declare_alive()
+        emit("ready")
+        done.wait(args.timeout)
+        emit("stats", **net.stats())
+
+
+def role_alive(args) -> None:
+    """Hold a liveliness token until killed (or stdin closes)."""
+    with transport(args, args.id) as net:
+        net.declare_alive()
+        emit("ready")
+        wait_for_stdin_close()
+
+
+def role_watcher(args) -> None:
+    """Report the live set on every change, with the monotonic time it was seen."""
+    with transport(args, args.id) as net:
+        net.declare_alive()
+        net.watch_alive(lambda ids: emit("alive", ids=sorted(ids)))
+        emit("ready")
+        wait_for_stdin_close()
+
+
+def role_latest_server(args) -> None:
+    """Robot 0 runs rounds 0..3, publishing each snapshot and serving the newest on latest/0."""
+    spec = helpers.small_spec()
+    with transport(args, 0) as net:
+        net.declare_alive()
+        for r in range(4):
+            msg = ThetaSnapshot(helpers.SWARM, 0, r, 0, spec.signature(), helpers.small_tensors(seed=r))
+            data = codec.encode(msg)
+            net.publish(net.keys.theta(0, r), data)
+            net.set_latest(data)
+        emit("ready", rounds=4)
+        wait_for_stdin_close()
+
+
+def role_late_joiner(args) -> None:
+    """Start late, fetch robot 0's newest snapshot through the queryable."""
+    expect = helpers.expectation()
+    with transport(args, 2) as net:
+        t0 = time.monotonic()
+        data = None
+        while data is None and time.monotonic() - t0 < 10:  # the link may need a moment
+            data = net.query(net.keys.latest(0), timeout=2.0)
+        if data is None:
+            emit("fetched", ok=False)
+            return
+        msg = codec.decode(data, expect, kind="theta", key=net.keys.parse(net.keys.latest(0)))
+        emit("fetched", ok=True, round=msg.round, sender=msg.sender, seconds=time.monotonic() - t0,
+             digest=digest(msg.tensors), want=digest(helpers.small_tensors(seed=3)))
+
+
+def rogue_messages() -> list[tuple[str, str, bytes]]:
+    """(expected outcome, key, bytes) the rogue sends, in order; the last one is a valid snapshot."""
+    keys = helpers.keys()
+    out = [(reason, keys.theta(key_id, helpers.ROUND), data)
+           for _, reason, data, key_id in helpers.malformed_cases()]
+    status = codec.encode(Status(helpers.SWARM, 1, helpers.ROUND, 0, 0, "train", 1.0, None, [0.0] * 7, [], 0, 0, {},
+                                 "identity", 0.0, 0.0, 0.0))
+    out += [
+        ("bad_kind", keys.theta(1, helpers.ROUND), status),
+        ("foreign_key", f"dinerf/{helpers.SWARM}/theta/abc/{helpers.ROUND}", helpers.valid_frame()),
+        ("stale_round", keys.theta(1, helpers.ROUND - 3), helpers.valid_frame(round=helpers.ROUND - 3)),
+        ("too_far_ahead", keys.theta(1, helpers.ROUND + 50), helpers.valid_frame(round=helpers.ROUND + 50)),
+        ("accepted", keys.theta(1, helpers.ROUND), helpers.valid_frame()),
+    ]
+    return out
+
+
+def role_rogue(args) -> None:
+    """Publish every malformed kind on the swarm's theta keys, once robot 0 listens."""
+    with transport(args, 1) as net:
+        if not wait_for_alive(net, 0, 20):
+            emit("error", detail="receiver never appeared")
+            return
+        messages = rogue_messages()
+        for _, key, data in messages:
+            net.publish(key, data)
+        emit("sent", count=len(messages))
+        wait_for_stdin_close()
+
+
+def role_rogue_receiver(args) -> None:
+    """Robot 0 at round ROUND: decode everything on theta/*/*, count outcomes by reason."""
+    expect = helpers.expectation()
+    mailbox: Mailbox = Mailbox(max_ahead=2, current_round=helpers.ROUND)
+    counts: dict[str, int] = {}
+    total = len(rogue_messages())
+    lock = threading.Lock()
+    done = threading.Event()
+
+    def count(outcome: str) -> None:
+        with lock:
+            counts[outcome] = counts.get(outcome, 0) + 1
+            if sum(counts.values()) >= total:
+                done.set()
+
+    def on_theta(key: str, data: bytes) -> None:
+        try:
+            parsed = net.keys.parse(key)
+        except ForeignKey:
+            count("foreign_key")
+            return
+        try:
+            msg = codec.decode(data, expect, kind="theta", key=parsed)
+            mailbox.offer(msg.sender, msg.round, msg)
+            count("accepted")
+        except Rejected as exc:
+            count(exc.reason)
+
+    with transport(args, 0) as net:
+        net.subscribe(net.keys.theta_all(), on_theta)
+        net.declare_alive()
+        emit("ready")
+        done.wait(args.timeout - 2)
+        accepted = mailbox.items(helpers.ROUND)
+        emit("counts", counts=counts, expected_total=total,
+             accepted_senders=sorted(accepted), accepted_ok=all(
+                 np.array_equal(accepted[s].tensors[n], t) for s in accepted
+                 for n, t in helpers.small_tensors().items()),
+             callback_errors=net.stats()["callback_errors"])
+
+
+def role_self_check(args) -> None:
+    """One session alone: callback errors are contained and counted, close() is idempotent."""
+    from protocol.transport import TransportError
+
+    net = transport(args, 0)
+    got = threading.Event()
+
+    def explode(key: str, data: bytes) -> None:
+        raise RuntimeError("a bug in a user callback")
+
+    net.subscribe(net.keys.theta_of(0), explode)
+    sub = net.subscribe(net.keys.theta_of(0), lambda key, data: got.set())
+    net.publish(net.keys.theta(0, 1), b"x" * 10)
+    delivered = got.wait(5)
+    time.sleep(0.2)
+    errors = net.stats()["callback_errors"]
+    sub.undeclare()
+    sub.undeclare()  # twice is fine
+    net.set_latest(b"newest")
+    served = net.query(net.keys.latest(0), timeout=2)
+    missing = net.query(net.keys.latest(7), timeout=2)
+    net.close()
+    net.close()
+    try:
+        net.publish(net.keys.theta(0, 2), b"y")
+        after_close = "no error"
+    except TransportError as exc:
+        after_close = str(exc)
+    emit("checked", delivered=delivered, callback_errors=errors, served=served.decode() if served else None,
+         missing=missing, after_close=after_close, stats=net.stats())
+
+
+ROLES = {
+    "self-check": role_self_check,
+    "big-publisher": role_big_publisher,
+    "big-receiver": role_big_receiver,
+    "alive": role_alive,
+    "watcher": role_watcher,
+    "latest-server": role_latest_server,
+    "late-joiner": role_late_joiner,
+    "rogue": role_rogue,
+    "rogue-receiver": role_rogue_receiver,
+}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("role", choices=sorted(ROLES))
+    parser.add_argument("--listen", type=int, default=0)
+    parser.add_argument("--connect", type=int, action="append", default=[])
+    parser.add_argument("--id", type=int, default=0)
+    parser.add_argument("--size-mb", type=int, default=64)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--compression", default="zstd")
+    parser.add_argument("--timeout", type=float, default=30.0)
+    args = parser.parse_args()
+    watchdog = threading.Timer(args.timeout, lambda: os._exit(3))  # never outlive the test
+    watchdog.daemon = True
+    watchdog.start()
+    ROLES[args.role](args)
+    sys.stdout.flush()
+    os._exit(0)  # do not wait on Zenoh's background threads at interpreter exit
+
+
+if __name__ == "__main__":
+    main()
