@@ -444,8 +444,10 @@ class ZenohTransport:
 
     def _get(self, key_expr: str, timeout: float | None, first_only: bool):
         try:
+            # replies follow the query's QoS: BLOCK so a large snapshot reply is never dropped
             replies = self.session.get(key_expr, timeout=timeout or self.cfg.query_timeout_s,
-                                       target=zenoh.QueryTarget.ALL)
+                                       target=zenoh.QueryTarget.ALL,
+                                       congestion_control=zenoh.CongestionControl.BLOCK)
         except Exception as exc:
             raise TransportError(f"get on {key_expr} failed: {exc}") from None
         for reply in replies:

@@ -50,9 +50,16 @@ def digest(tensors: dict[str, np.ndarray]) -> str:
 
 
 def transport(args, robot_id: int) -> ZenohTransport:
-    listen = [f"tcp/127.0.0.1:{args.listen}"] if args.listen else []
-    connect = [f"tcp/127.0.0.1:{p}" for p in args.connect]
-    cfg = TransportConfig(listen=listen, connect=connect, multicast_scouting=False, lease_ms=2000)
+    tls = {}
+    proto, host = "tcp", "127.0.0.1"
+    if args.tls_dir:  # mutual TLS with <tls-dir>/<ca>.pem and <tls-dir>/<cert>.pem/.key
+        proto, host = "tls", "localhost"
+        d = args.tls_dir
+        tls = dict(tls_root_ca=f"{d}/{args.tls_ca}.pem", tls_cert=f"{d}/{args.tls_cert}.pem",
+                   tls_key=f"{d}/{args.tls_cert}.key", enable_mtls=True)
+    listen = [f"{proto}/{host}:{args.listen}"] if args.listen else []
+    connect = [f"{proto}/{host}:{p}" for p in args.connect]
+    cfg = TransportConfig(listen=listen, connect=connect, multicast_scouting=False, lease_ms=2000, **tls)
     return ZenohTransport(cfg, helpers.keys(), robot_id).open()
 
 
@@ -85,6 +92,7 @@ def role_big_publisher(args) -> None:
         t1 = time.monotonic()
         net.publish(net.keys.theta(0, 1), data)
         t2 = time.monotonic()
+        net.set_latest(data)
         emit("published", bytes=len(data), encode_s=t1 - t0, put_s=t2 - t1, t_put=t1)
         wait_for_stdin_close()  # stay up until the test is done, so the transfer can finish
 
@@ -114,6 +122,15 @@ def role_big_receiver(args) -> None:
         net.declare_alive()
         emit("ready")
         done.wait(args.timeout)
+        t0 = time.monotonic()
+        data = net.query(net.keys.latest(0), timeout=20)  # the same snapshot through the queryable
+        t1 = time.monotonic()
+        try:
+            msg = codec.decode(data, expect, kind="theta") if data is not None else None
+            emit("queried", bytes=len(data or b""), ok=msg is not None and digest(msg.tensors) == want,
+                 seconds=t1 - t0)
+        except Rejected as exc:
+            emit("queried", bytes=len(data), ok=False, reason=exc.reason)
         emit("stats", **net.stats())
 
 
@@ -290,6 +307,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--compression", default="zstd")
     parser.add_argument("--timeout", type=float, default=30.0)
+    parser.add_argument("--tls-dir", default="")
+    parser.add_argument("--tls-ca", default="ca")
+    parser.add_argument("--tls-cert", default="robot")
     args = parser.parse_args()
     watchdog = threading.Timer(args.timeout, lambda: os._exit(3))  # never outlive the test
     watchdog.daemon = True

@@ -25,6 +25,9 @@ def test_64mb_snapshot_published_with_block_arrives_intact(peers):
     print(f"\n64 MB snapshot: {sent['bytes']} bytes on the wire, encode {sent['encode_s']:.2f} s, "
           f"put {sent['put_s']:.2f} s, put->received {got['t_in'] - sent['t_put']:.2f} s, "
           f"decode+check {got['decode_s']:.2f} s")
+    queried = receiver.expect("queried", 30)  # and the same 64 MB through the latest/ queryable
+    assert queried["ok"] and queried["bytes"] == sent["bytes"], queried
+    print(f"64 MB snapshot through the latest queryable: {queried['seconds']:.2f} s")
 
 
 def test_liveliness_join_and_sigkill_seen_quickly(peers):
