@@ -22,7 +22,8 @@ Why these choices:
   to reassemble anything larger, before the codec's own caps.
 - Callbacks run on Zenoh threads: they are wrapped so an exception never escapes into Zenoh
   (it is logged and counted in ``stats()["callback_errors"]``). Keep user callbacks short:
-  hand the bytes to a queue or :class:`protocol.rounds.Mailbox` and decode elsewhere.
+  hand the bytes to a queue or :class:`protocol.rounds.Mailbox` and decode elsewhere, and never
+  call a blocking method of the transport (``query``, ``alive_now``, ``publish``) from a callback.
 - ``close()`` is idempotent, never blocks on a second call and never raises, so it can be
   called from a signal handler path and from ``__exit__`` alike.
 
@@ -188,6 +189,7 @@ class ZenohTransport:
         self._served: dict[str, bytes | None] = {}
         self._queryables: dict[str, Any] = {}
         self._publishers: dict[str, Any] = {}
+        self._publishers_lock = threading.Lock()
 
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> "ZenohTransport":
@@ -341,14 +343,14 @@ class ZenohTransport:
 
     def _publisher(self, key: str) -> Any:
         """A declared publisher for ``key`` (reliable, BLOCK); the few most recent keys are kept."""
-        with self._lock:
+        evicted = []
+        with self._publishers_lock:  # not the counters lock: Zenoh callbacks never wait on this one
             pub = self._publishers.pop(key, None)
             if pub is None:
                 pub = self.session.declare_publisher(
                     key, congestion_control=zenoh.CongestionControl.BLOCK,
                     reliability=zenoh.Reliability.RELIABLE)
             self._publishers[key] = pub  # most recent last
-            evicted = []
             while len(self._publishers) > self.PUBLISHER_CACHE:
                 evicted.append(self._publishers.pop(next(iter(self._publishers))))
         for old in evicted:
@@ -371,7 +373,11 @@ class ZenohTransport:
             self._messages_out += 1
 
     def subscribe(self, key_expr: str, callback: Callable[[str, bytes], None]) -> Subscription:
-        """Deliver ``callback(key, data)`` for every put matching ``key_expr`` (deletes are ignored)."""
+        """Deliver ``callback(key, data)`` for every put matching ``key_expr`` (deletes are ignored).
+
+        ``key`` is passed as received: under a wildcard it may be foreign (``theta/abc/1``), so
+        parse it with :meth:`Keys.parse` and count a ``ForeignKey`` as a rejection.
+        """
 
         def on_sample(sample: zenoh.Sample) -> None:
             if sample.kind == zenoh.SampleKind.DELETE:
