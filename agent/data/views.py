@@ -56,6 +56,25 @@ class Views:
     def __len__(self) -> int:
         return int(self.images.shape[0])
 
+    @property
+    def has_alpha(self) -> bool:
+        return int(self.images.shape[-1]) == 4
+
+    def rgb(self, background: float | tuple[float, float, float] | Tensor = 1.0) -> Tensor:
+        """Colour composited onto ``background`` (straight alpha): ``rgb * a + bg * (1 - a)``.
+
+        background: a grey level, an RGB triple, or a tensor broadcastable to [M, H, W, 3]
+        (e.g. a random colour per pixel, which training uses so that empty space stays empty).
+        Returns [M, H, W, 3]. RGB images are returned unchanged.
+        """
+        if not self.has_alpha:
+            return self.images
+        bg = torch.as_tensor(background, dtype=self.images.dtype)
+        if bg.ndim == 0:
+            bg = bg.expand(3)
+        alpha = self.images[..., 3:4]
+        return self.images[..., :3] * alpha + bg * (1 - alpha)
+
     def subset(self, index: list[int] | Tensor) -> "Views":
         idx = torch.as_tensor(index, dtype=torch.long)
         return Views(
