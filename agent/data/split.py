@@ -1,0 +1,528 @@
+"""Turn one posed dataset into N robots the way the Di-NeRF paper does, plus the evaluation truth.
+
+Each robot gets the views of one sector of directions around the scene centre, re-expressed in
+its own local frame; held-out views of the whole scene (in the world frame) are kept for
+evaluation; the true relative poses go to a file that only evaluation reads.
+
+Sectors. The azimuth of a camera is the angle of its centre about the up axis through the
+scene centre (up: given, or the mean camera up vector; centre: given, or the least-squares
+point closest to all optical axes). Robot k (k = 0..N-1, in id order) owns the core sector
+``[start + k w, start + (k + 1) w)`` with ``w = 360 / N``; every sector is widened by a margin
+``delta`` on both sides, so robot k holds the training views whose azimuth falls in
+``[start + k w - delta, start + (k + 1) w + delta)``.
+
+Overlap, precisely: the overlap of robot i is the fraction of robot i's training views that
+also belong to at least one other robot. For azimuths spread uniformly it is
+``4 delta / (w + 2 delta)``; rather than trust that, ``delta`` is chosen on the actual views
+(among all values at which a view enters a neighbour's sector, below ``w / 2``) so that the mean
+over robots of the achieved overlap is closest to the requested one. The achieved per-robot and
+mean overlaps are reported.
+
+Held-out views: every k-th view of the source order (indices 0, k, 2k, ...) is used by nobody
+for training. Each carries ``seen_by``: the robots whose widened sector contains its direction,
+so "views only other robots saw" for robot i are the held-out views whose ``seen_by`` excludes i.
+
+Local frames (``T_world_from_local`` maps a robot's local coordinates into the world):
+``first_camera`` (the paper's: the robot's first camera is its origin), ``offset`` (the reference
+keeps the world frame; every other robot is offset by a fixed rotation and translation),
+``world`` (identity: known poses), ``random`` (seeded rotation, translation and optional scale).
+Poses become ``transform_c2w(sim3_inverse(T), c2w)``; depths are divided by the scale.
+The shared frame g of the swarm is the local frame of the reference robot (the lowest id).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from agent.data.folder import _matrix, write_json, write_views_folder
+from agent.data.views import DataError, Views
+from agent.geometry import random_rotation, sim3_decompose, sim3_inverse, so3_exp, transform_c2w
+
+__all__ = [
+    "SplitConfig",
+    "RobotSplit",
+    "SplitResult",
+    "split_views",
+    "write_split",
+    "estimate_scene_box",
+    "scene_center",
+    "mean_up",
+    "azimuths_deg",
+    "offset_transform",
+]
+
+FrameKind = Literal["first_camera", "offset", "world", "random"]
+DepthPrior = Literal["none", "true", "scaled"]
+
+
+@dataclass
+class SplitConfig:
+    """How to split a dataset into robots (see the module docstring for the exact definitions)."""
+
+    robots: int = 2
+    ids: list[int] | None = None  # robot ids, default 1..robots; the reference is the lowest
+    overlap: float = 0.0  # requested mean fraction of a robot's views shared with a neighbour, [0, 0.4]
+    holdout_every: int = 8  # every k-th view (0, k, 2k, ...) is held out for evaluation; 0 = none
+    frame: FrameKind = "first_camera"
+    offset_rotation_deg: tuple[float, float, float] = (30.0, 30.0, 30.0)  # about x, then y, then z
+    offset_translation: tuple[float, float, float] = (3.0, 3.0, 3.0)
+    random_max_angle_deg: float = 180.0
+    random_max_translation: float = 3.0  # uniform in the ball of this radius
+    random_max_scale: float = 1.0  # > 1: Sim(3), scale log-uniform in [1/x, x]; 1: SE(3)
+    depth_prior: DepthPrior = "none"
+    depth_scale_range: tuple[float, float] = (0.5, 2.0)  # a_m of the "scaled" prior
+    depth_shift_range: tuple[float, float] = (-0.5, 0.5)  # b_m of the "scaled" prior
+    up: tuple[float, float, float] | None = None
+    center: tuple[float, float, float] | None = None
+    sector_start_deg: float = 0.0
+    images_only: bool = False  # robot folders without poses (robots must run their own SfM)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.robots < 1:
+            raise DataError(f"robots must be >= 1, got {self.robots}")
+        if self.ids is not None:
+            if len(self.ids) != self.robots or len(set(self.ids)) != len(self.ids) or min(self.ids) < 0:
+                raise DataError(f"ids must be {self.robots} distinct non-negative integers, got {self.ids}")
+        if not 0.0 <= self.overlap <= 0.4:
+            raise DataError(f"overlap must be in [0, 0.4], got {self.overlap}")
+        if self.holdout_every < 0 or self.holdout_every == 1:
+            raise DataError(f"holdout_every must be 0 (none) or >= 2, got {self.holdout_every}")
+        for name, allowed in (("frame", FrameKind), ("depth_prior", DepthPrior)):
+            if getattr(self, name) not in allowed.__args__:
+                raise DataError(f"{name} must be one of {list(allowed.__args__)}, got {getattr(self, name)!r}")
+        if self.random_max_scale < 1.0:
+            raise DataError(f"random_max_scale must be >= 1, got {self.random_max_scale}")
+        if self.images_only and self.depth_prior != "none":
+            raise DataError("images_only robots have no transforms.json to carry a depth prior; use depth_prior='none'")
+
+    @property
+    def robot_ids(self) -> list[int]:
+        return sorted(self.ids) if self.ids is not None else list(range(1, self.robots + 1))
+
+
+@dataclass
+class RobotSplit:
+    id: int
+    views: Views  # in the robot's local frame; depth = the depth prior (or None)
+    indices: list[int]  # into the source views
+    T_world_from_local: Tensor  # [4, 4] float64
+    sector_deg: tuple[float, float]  # widened sector [start, end) in degrees
+    overlap: float  # achieved: fraction of this robot's views also held by another robot
+    depth_affine: Tensor | None = None  # [M_i, 2] (a_m, b_m): prior = a_m * true_local_depth + b_m
+
+
+@dataclass
+class SplitResult:
+    config: SplitConfig
+    robots: dict[int, RobotSplit]
+    eval_views: Views  # world frame, true depth if the source has depth
+    eval_indices: list[int]
+    seen_by: list[list[int]]  # per eval view
+    reference_id: int
+    center: Tensor  # [3] scene centre used for the sectors
+    up: Tensor  # [3] unit up axis
+    azimuth_deg: Tensor  # [M] of every source view
+    margin_deg: float  # delta
+    mean_overlap: float
+    box_center_world: Tensor  # [3]
+    box_half_size: float
+    box_source: str
+    source: str = ""
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def T_shared_from_local(self) -> dict[int, Tensor]:
+        """What robot i's relative pose T_i should converge to: inv(T_ref) T_i.  {id: [4, 4]}."""
+        ref_inv = sim3_inverse(self.robots[self.reference_id].T_world_from_local)
+        return {i: ref_inv @ r.T_world_from_local for i, r in self.robots.items()}
+
+    @property
+    def box_from_world(self) -> Tensor:
+        """[4, 4]: world -> normalised box coordinates, ``(x - centre) / half_size``."""
+        out = torch.eye(4, dtype=torch.float64) / self.box_half_size
+        out[3, 3] = 1.0
+        out[:3, 3] = -self.box_center_world.to(torch.float64) / self.box_half_size
+        return out
+
+    @property
+    def box_from_shared(self) -> Tensor:
+        """[4, 4]: shared frame g (the reference's local frame) -> box coordinates [-1, 1]^3."""
+        return self.box_from_world @ self.robots[self.reference_id].T_world_from_local
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry of the capture
+# --------------------------------------------------------------------------------------------
+
+
+def scene_center(c2w: Tensor) -> Tensor:
+    """Least-squares point closest to all optical axes.  c2w: [M, 4, 4] -> [3] float64.
+
+    Minimises ``sum_i |(I - d_i d_i^T)(p - o_i)|^2`` (distance of p to each axis). When the axes
+    are (nearly) parallel, e.g. a forward-facing capture, the mean camera centre is used instead.
+    """
+    c2w = c2w.to(torch.float64)
+    o = c2w[:, :3, 3]
+    d = -c2w[:, :3, 2]
+    d = d / d.norm(dim=-1, keepdim=True)
+    proj = torch.eye(3, dtype=torch.float64) - d[:, :, None] * d[:, None, :]  # [M, 3, 3]
+    a = proj.sum(0)
+    b = (proj @ o[:, :, None]).sum(0)[:, 0]
+    if torch.linalg.eigvalsh(a).min() < 1e-3 * len(c2w):
+        return o.mean(0)
+    return torch.linalg.solve(a, b)
+
+
+def mean_up(c2w: Tensor) -> Tensor:
+    """The up axis of a capture.  c2w: [M, 4, 4] -> [3] unit float64.
+
+    Starts from the mean of the cameras' up vectors (their +Y axes). That mean leans towards
+    wherever the cameras happen to be (cameras looking down at an object from random azimuths
+    tilt it by several degrees), so when the cameras have no roll, i.e. their x axes are all
+    horizontal as in the Blender scenes and most captures, the axis orthogonal to every x axis
+    is used instead (smallest eigenvector of sum x x^T, signed like the mean up), which is exact.
+    """
+    c2w = c2w.to(torch.float64)
+    up = c2w[:, :3, 1].mean(0)
+    if up.norm() < 1e-6:
+        raise DataError("the cameras' up vectors cancel out; give the up axis explicitly")
+    up = up / up.norm()
+    right = c2w[:, :3, 0]
+    evals, evecs = torch.linalg.eigh(right.T @ right)
+    # roll-free cameras: x axes orthogonal to one direction (< ~2 deg rms), and spread enough to define it
+    if len(c2w) >= 3 and evals[0] < 1e-3 * len(c2w) and evals[1] > 0.05 * len(c2w):
+        normal = evecs[:, 0]
+        return normal if normal @ up > 0 else -normal
+    return up
+
+
+def _plane_basis(up: Tensor) -> tuple[Tensor, Tensor]:
+    """Two unit vectors spanning the plane orthogonal to ``up``; e1 from the world axis least
+    aligned with up (so that for up = +z the azimuth is the usual atan2(y, x))."""
+    axis = torch.zeros(3, dtype=torch.float64)
+    axis[int(up.abs().argmin())] = 1.0
+    e1 = axis - (axis @ up) * up
+    e1 = e1 / e1.norm()
+    return e1, torch.linalg.cross(up, e1)
+
+
+def azimuths_deg(c2w: Tensor, center: Tensor, up: Tensor) -> Tensor:
+    """Azimuth in [0, 360) of each camera centre about ``up`` through ``center``.  -> [M] float64."""
+    e1, e2 = _plane_basis(up.to(torch.float64))
+    v = c2w[:, :3, 3].to(torch.float64) - center.to(torch.float64)
+    return torch.rad2deg(torch.atan2(v @ e2, v @ e1)) % 360.0
+
+
+def _membership(az: np.ndarray, starts: np.ndarray, width: float, delta: float) -> np.ndarray:
+    """[M, N] bool: azimuth in sector k widened by delta on both sides."""
+    rel = (az[:, None] - starts[None, :] + delta) % 360.0
+    return rel < width + 2 * delta
+
+
+def _overlaps(mem: np.ndarray) -> np.ndarray:
+    """[N] fraction of each robot's views that another robot also holds (nan for an empty robot)."""
+    shared = mem.sum(1) > 1
+    count = mem.sum(0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, (mem & shared[:, None]).sum(0) / count, np.nan)
+
+
+def _choose_margin(az: np.ndarray, starts: np.ndarray, width: float, target: float) -> float:
+    """The margin delta in [0, w/2) whose mean achieved overlap is closest to ``target``."""
+    if len(starts) < 2 or target <= 0.0:
+        return 0.0
+    # membership only changes where a view crosses a sector boundary: try just past each crossing
+    dist = np.abs(((az[:, None] - starts[None, :] + 180.0) % 360.0) - 180.0).ravel()
+    cands = np.unique(np.concatenate([[0.0], dist + 1e-6]))
+    cands = cands[cands < width / 2]
+    best, best_err = 0.0, math.inf
+    for delta in cands:
+        err = abs(float(np.nanmean(_overlaps(_membership(az, starts, width, delta)))) - target)
+        if err < best_err - 1e-12:
+            best, best_err = float(delta), err
+    return best
+
+
+def offset_transform(rotation_deg: tuple[float, float, float], translation: tuple[float, float, float]) -> Tensor:
+    """``[R | t]`` with R = Rz(c) Ry(b) Rx(a) for rotation_deg = (a, b, c).  -> [4, 4] float64."""
+    rot = torch.eye(3, dtype=torch.float64)
+    for axis, deg in enumerate(rotation_deg):
+        phi = torch.zeros(3, dtype=torch.float64)
+        phi[axis] = math.radians(deg)
+        rot = so3_exp(phi) @ rot
+    out = torch.eye(4, dtype=torch.float64)
+    out[:3, :3] = rot
+    out[:3, 3] = torch.tensor(translation, dtype=torch.float64)
+    return out
+
+
+def estimate_scene_box(views: Views) -> tuple[Tensor, float, str]:
+    """The world box of the scene: (centre [3], half-size, where it came from).
+
+    In order of trust: ``meta['scene_box_world']`` (the procedural scene knows it exactly; a json
+    may carry it); the bounds of the depth unprojected into the world (2nd-98th percentile per
+    axis, padded by 10%); else the cameras: centre of the optical axes and the half-width of the
+    median frustum at that distance (for the Blender scenes this gives ~1.45, close to the
+    customary [-1.5, 1.5]^3).
+    """
+    box = views.meta.get("scene_box_world")
+    if isinstance(box, dict) and "center" in box and "half_size" in box:
+        return torch.tensor(box["center"], dtype=torch.float64), float(box["half_size"]), "dataset"
+    if views.depth is not None and bool((views.depth > 0).any()):
+        pts = []
+        for i in range(len(views)):
+            d = views.depth[i].to(torch.float64)
+            rows, cols = torch.nonzero(d > 0, as_tuple=True)
+            if len(rows) == 0:
+                continue
+            fx, fy, cx, cy = views.intrinsics[i].to(torch.float64)
+            z = d[rows, cols]
+            cam = torch.stack([(cols + 0.5 - cx) / fx * z, -(rows + 0.5 - cy) / fy * z, -z], -1)
+            c2w = views.c2w[i].to(torch.float64)
+            pts.append(cam @ c2w[:3, :3].T + c2w[:3, 3])
+        p = torch.cat(pts)
+        if len(p) > 200_000:
+            p = p[torch.randperm(len(p), generator=torch.Generator().manual_seed(0))[:200_000]]
+        lo, hi = torch.quantile(p, 0.02, dim=0), torch.quantile(p, 0.98, dim=0)
+        return 0.5 * (lo + hi), float(0.55 * (hi - lo).max()), "depth"
+    center = scene_center(views.c2w)
+    dist = (views.c2w[:, :3, 3].to(torch.float64) - center).norm(dim=-1)
+    half_fov = torch.minimum(
+        torch.atan(0.5 * views.width / views.intrinsics[:, 0]), torch.atan(0.5 * views.height / views.intrinsics[:, 1])
+    ).to(torch.float64)
+    return center, float((dist * torch.tan(half_fov)).median()), "cameras"
+
+
+# --------------------------------------------------------------------------------------------
+# The split
+# --------------------------------------------------------------------------------------------
+
+
+def split_views(views: Views, cfg: SplitConfig | None = None) -> SplitResult:
+    """Split ``views`` (world frame) into robots, held-out views and the truth; nothing is written."""
+    cfg = cfg or SplitConfig()
+    ids = cfg.robot_ids
+    n = len(ids)
+    m = len(views)
+    if cfg.depth_prior != "none" and views.depth is None:
+        raise DataError(
+            f"depth prior {cfg.depth_prior!r} needs a source with depth (procedural, nerfstudio depth maps "
+            f"or a COLMAP model); {views.meta.get('source', 'this source')} has none"
+        )
+    eval_idx = list(range(0, m, cfg.holdout_every)) if cfg.holdout_every else []
+    train_idx = [i for i in range(m) if i not in set(eval_idx)]
+    if not train_idx:
+        raise DataError(f"no training views left: {m} views with holdout_every={cfg.holdout_every}")
+
+    up = torch.tensor(cfg.up, dtype=torch.float64) if cfg.up is not None else mean_up(views.c2w)
+    up = up / up.norm()
+    center = torch.tensor(cfg.center, dtype=torch.float64) if cfg.center is not None else scene_center(views.c2w)
+    az_all = azimuths_deg(views.c2w, center, up)
+    az = az_all.numpy()
+    width = 360.0 / n
+    starts = (cfg.sector_start_deg + width * np.arange(n)) % 360.0
+    delta = _choose_margin(az[train_idx], starts, width, cfg.overlap)
+    mem_train = _membership(az[train_idx], starts, width, delta)  # [M_train, N]
+    overlaps = _overlaps(mem_train)
+    for k, rid in enumerate(ids):
+        if not mem_train[:, k].any():
+            raise DataError(f"robot {rid} gets no views (sector {starts[k]:.0f}-{starts[k] + width:.0f} deg is empty); use fewer robots")
+    mean_overlap = float(np.mean(overlaps))
+
+    gen = torch.Generator().manual_seed(cfg.seed)
+    reference = ids[0]
+    robots: dict[int, RobotSplit] = {}
+    notes: list[str] = []
+    for k, rid in enumerate(ids):
+        idx = [train_idx[j] for j in np.nonzero(mem_train[:, k])[0]]
+        sub = views.subset(idx)
+        t_wl = _local_frame(cfg, rid == reference, sub, gen)
+        scale = float(sim3_decompose(t_wl)[0])
+        c2w_local = transform_c2w(sim3_inverse(t_wl), sub.c2w.to(torch.float64)).float()
+        depth, affine = None, None
+        if cfg.depth_prior != "none":
+            assert sub.depth is not None
+            depth = sub.depth.to(torch.float64) / scale
+            if cfg.depth_prior == "scaled":
+                a = torch.empty(len(idx), dtype=torch.float64).uniform_(*cfg.depth_scale_range, generator=gen)
+                b = torch.empty(len(idx), dtype=torch.float64).uniform_(*cfg.depth_shift_range, generator=gen)
+                affine = torch.stack([a, b], -1)
+                known = depth > 0
+                depth = torch.where(known, (a[:, None, None] * depth + b[:, None, None]).clamp_min(1e-6), 0.0)
+            depth = depth.float()
+        meta = {k2: v for k2, v in sub.meta.items() if k2 not in ("scene_box_world",)}
+        meta.update(robot_id=rid, frame=cfg.frame, depth_prior=cfg.depth_prior)
+        local = Views(sub.images, c2w_local, sub.intrinsics.clone(), list(sub.names), depth, meta)
+        sector = (float(starts[k] - delta), float(starts[k] + width + delta))
+        robots[rid] = RobotSplit(rid, local, idx, t_wl, sector, float(overlaps[k]), affine)
+
+    seen_by = []
+    if eval_idx:
+        mem_eval = _membership(az[eval_idx], starts, width, delta)
+        seen_by = [[ids[k] for k in np.nonzero(row)[0]] for row in mem_eval]
+    eval_views = views.subset(eval_idx) if eval_idx else views.subset([])
+    box_c, box_h, box_src = estimate_scene_box(views)
+    if box_src != "dataset":
+        notes.append(f"scene box estimated from the {box_src}: centre {box_c.tolist()}, half-size {box_h:.3f}")
+    return SplitResult(
+        config=cfg,
+        robots=robots,
+        eval_views=eval_views,
+        eval_indices=eval_idx,
+        seen_by=seen_by,
+        reference_id=reference,
+        center=center,
+        up=up,
+        azimuth_deg=az_all,
+        margin_deg=delta,
+        mean_overlap=mean_overlap,
+        box_center_world=box_c,
+        box_half_size=box_h,
+        box_source=box_src,
+        source=str(views.meta.get("source", "")),
+        notes=notes,
+    )
+
+
+def _local_frame(cfg: SplitConfig, is_reference: bool, sub: Views, gen: torch.Generator) -> Tensor:
+    """T_world_from_local [4, 4] float64 of one robot."""
+    if cfg.frame == "world":
+        return torch.eye(4, dtype=torch.float64)
+    if cfg.frame == "first_camera":
+        return sub.c2w[0].to(torch.float64).clone()
+    if cfg.frame == "offset":
+        if is_reference:
+            return torch.eye(4, dtype=torch.float64)
+        return offset_transform(cfg.offset_rotation_deg, cfg.offset_translation)
+    # random: rotation up to the max angle, translation uniform in the ball, optional scale
+    out = torch.eye(4, dtype=torch.float64)
+    rot = random_rotation(gen, cfg.random_max_angle_deg)
+    direction = torch.randn(3, generator=gen, dtype=torch.float64)
+    radius = cfg.random_max_translation * float(torch.rand((), generator=gen, dtype=torch.float64)) ** (1 / 3)
+    log_s = math.log(cfg.random_max_scale)
+    scale = math.exp((2 * float(torch.rand((), generator=gen, dtype=torch.float64)) - 1) * log_s) if log_s > 0 else 1.0
+    out[:3, :3] = scale * rot
+    out[:3, 3] = direction / direction.norm() * radius
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------------------------
+
+
+def _owned_outputs(out: Path) -> list[Path]:
+    return sorted(out.glob("robot*")) + [out / n for n in ("eval", "truth.json", "split.json", "scene.json")]
+
+
+def write_split(result: SplitResult, out: str | Path, *, overwrite: bool = False) -> Path:
+    """Write robot folders, ``eval/``, ``truth.json``, ``split.json`` and ``scene.json`` under ``out``.
+
+    An existing non-empty ``out`` is refused unless ``overwrite``, which removes only what a
+    split writes (``robot*/``, ``eval/`` and the three json files) so that no stale robot of an
+    earlier split with more robots survives.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise DataError(f"{out}: exists and is not a folder")
+    if out.exists() and any(out.iterdir()):
+        if not overwrite:
+            raise DataError(f"{out}: folder is not empty; choose a new --out or pass --force to replace a previous split")
+        for p in _owned_outputs(out):
+            if p.is_dir():
+                shutil.rmtree(p)
+            elif p.exists():
+                p.unlink()
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = result.config
+
+    for rid, rob in result.robots.items():
+        write_views_folder(
+            rob.views,
+            out / f"robot{rid}",
+            write_poses=not cfg.images_only,
+            top_extra={"dinerf": {"robot_id": rid, "frame": "local", "depth_prior": cfg.depth_prior}},
+        )
+    if len(result.eval_indices):
+        write_views_folder(
+            result.eval_views,
+            out / "eval",
+            frame_extra=[{"seen_by": s} for s in result.seen_by],
+            top_extra={
+                "scene_box_world": {"center": result.box_center_world.tolist(), "half_size": result.box_half_size},
+                "dinerf": {"frame": "world", "holdout_every": cfg.holdout_every},
+            },
+        )
+
+    t_shared = result.T_shared_from_local
+    truth = {
+        "note": "Evaluation only: the agents never read this file.",
+        "reference_id": result.reference_id,
+        "frame": cfg.frame,
+        "shared_frame": f"local frame of robot {result.reference_id}",
+        "scene_box_world": {"center": result.box_center_world.tolist(), "half_size": result.box_half_size},
+        "robots": {},
+    }
+    for rid, rob in result.robots.items():
+        entry = {
+            "T_world_from_local": _matrix(rob.T_world_from_local),
+            "T_shared_from_local": _matrix(t_shared[rid]),
+            "scale": float(sim3_decompose(rob.T_world_from_local)[0]),
+        }
+        if rob.depth_affine is not None:
+            entry["depth_affine"] = {
+                "definition": "prior = a * true_local_z_depth + b (where the true depth is known)",
+                "per_view": {n: [float(a), float(b)] for n, (a, b) in zip(rob.views.names, rob.depth_affine)},
+            }
+        truth["robots"][str(rid)] = entry
+    write_json(out / "truth.json", truth)
+
+    write_json(
+        out / "split.json",
+        {
+            "source": result.source,
+            "config": dataclasses.asdict(cfg),
+            "center": result.center.tolist(),
+            "up": result.up.tolist(),
+            "sector_margin_deg": result.margin_deg,
+            "target_overlap": cfg.overlap,
+            "mean_overlap": result.mean_overlap,
+            "robots": {
+                str(rid): {
+                    "count": len(rob.indices),
+                    "views": rob.views.names,
+                    "sector_deg": list(rob.sector_deg),
+                    "overlap": rob.overlap,
+                }
+                for rid, rob in result.robots.items()
+            },
+            "eval": {
+                "holdout_every": cfg.holdout_every,
+                "views": result.eval_views.names,
+                "seen_by": result.seen_by,
+            },
+            "notes": result.notes,
+        },
+    )
+    write_json(
+        out / "scene.json",
+        {
+            "reference_id": result.reference_id,
+            "box_from_shared": _matrix(result.box_from_shared),
+            "description": (
+                "box_from_shared maps the shared frame g (the local frame of the reference robot) into the "
+                "normalised field box [-1, 1]^3; robot i maps its local points with box_from_shared @ T_i."
+            ),
+        },
+    )
+    return out

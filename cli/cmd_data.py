@@ -1,0 +1,129 @@
+"""``dinerf-agent split`` and ``dinerf-agent inspect``: prepare robot folders, look at a dataset."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import torch
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from cli.errors import friendly_errors
+from cli.main import app
+
+DATA_HELP = "Dataset: a folder (transforms.json, COLMAP sparse/0, images), a json file, or procedural[:views=100,width=64,seed=0]."
+
+
+@app.command()
+@friendly_errors
+def split(
+    data: str = typer.Option(..., "--data", help=DATA_HELP),
+    robots: int = typer.Option(2, "--robots", "-n", help="Number of robots (ids 1..N; the reference is 1)."),
+    out: Path = typer.Option(..., "--out", help="Output folder (robot<id>/, eval/, truth.json, split.json, scene.json)."),
+    overlap: float = typer.Option(0.0, help="Mean fraction of a robot's views shared with a neighbour, 0-0.4."),
+    holdout_every: int = typer.Option(8, help="Hold out every k-th view (0, k, 2k, ...) for evaluation; 0 = none."),
+    frame: str = typer.Option("first_camera", help="Local frames: first_camera | offset | world | random."),
+    width: int = typer.Option(None, help="Downscale images to this width (area interpolation)."),
+    depth_prior: str = typer.Option("none", help="Depth written for robots: none | true | scaled (random a_m, b_m)."),
+    max_scale: float = typer.Option(1.0, help="With --frame random: scale log-uniform in [1/x, x] (Sim(3)); 1 = SE(3)."),
+    images_only: bool = typer.Option(False, help="Write robot images without poses (robots run their own SfM)."),
+    seed: int = typer.Option(0, help="Seed of the random frames and depth scale/shift."),
+    force: bool = typer.Option(False, help="Replace a previous split in --out."),
+) -> None:
+    """Split a dataset into N robot folders by sectors of view direction (Di-NeRF's setting)."""
+    from agent.data.loaders import load_views
+    from agent.data.split import SplitConfig, split_views, write_split
+    from agent.geometry import sim3_decompose, so3_log
+
+    cfg = SplitConfig(
+        robots=robots,
+        overlap=overlap,
+        holdout_every=holdout_every,
+        frame=frame,  # type: ignore[arg-type]  # validated by SplitConfig
+        depth_prior=depth_prior,  # type: ignore[arg-type]
+        random_max_scale=max_scale,
+        images_only=images_only,
+        seed=seed,
+    )
+    views = load_views(data, width=width)
+    result = split_views(views, cfg)
+    write_split(result, out, overwrite=force)
+
+    console = Console()
+    table = Table(title=f"{len(views)} views of {data} -> {out}")
+    for col in ("robot", "views", "sector (deg)", "overlap", "local frame (vs world)"):
+        table.add_column(col)
+    for rid, rob in result.robots.items():
+        s, rot, t = sim3_decompose(rob.T_world_from_local)
+        angle = math.degrees(float(so3_log(rot).norm()))
+        desc = f"{cfg.frame}: {angle:.1f} deg, |t| {float(t.norm()):.2f}" + (f", s {float(s):.2f}" if abs(float(s) - 1) > 1e-4 else "")
+        a, b = rob.sector_deg
+        table.add_row(
+            f"{rid}" + (" (ref)" if rid == result.reference_id else ""),
+            str(len(rob.indices)),
+            f"{a % 360:.0f} .. {b % 360:.0f}",
+            f"{100 * rob.overlap:.0f}%",
+            desc,
+        )
+    console.print(table)
+    n_eval = len(result.eval_indices)
+    console.print(
+        f"overlap: mean {100 * result.mean_overlap:.1f}% (asked {100 * overlap:.0f}%, sector margin {result.margin_deg:.1f} deg); "
+        f"eval: {n_eval} views (every {holdout_every}th from 0)"
+        + (f", {sum(1 for s in result.seen_by if len(s) == 0)} seen by no robot" if n_eval else "")
+    )
+    console.print(f"scene box: {result.box_source}; depth prior: {depth_prior}; truth.json is for evaluation only")
+
+
+@app.command()
+@friendly_errors
+def inspect(
+    data: str = typer.Option(..., "--data", help=DATA_HELP),
+    width: int = typer.Option(None, help="Load at this width (as training would)."),
+) -> None:
+    """Show what a dataset holds: views, size, intrinsics, depth, camera layout, scene bounds."""
+    from agent.data.loaders import load_views
+    from agent.data.split import estimate_scene_box, mean_up, scene_center
+
+    v = load_views(data, width=width)
+    console = Console()
+    table = Table(title=str(data), show_header=False)
+    table.add_column("what", style="bold")
+    table.add_column("value")
+    table.add_row("format", str(v.meta.get("format", "?")))
+    table.add_row("views", f"{len(v)} ({', '.join(v.names[:3])}{', ...' if len(v) > 3 else ''})")
+    table.add_row("size", f"{v.width} x {v.height}, {'RGBA' if v.has_alpha else 'RGB'}")
+    if v.has_alpha:
+        table.add_row("alpha", f"mean {float(v.images[..., 3].mean()):.3f} (objects cover this fraction of pixels)")
+    k = v.intrinsics
+    fov = 2 * torch.rad2deg(torch.atan(0.5 * v.width / k[:, 0]))
+    uniq = "shared by all views" if bool((k == k[0]).all()) else "per view"
+    table.add_row(
+        "intrinsics",
+        f"fx {float(k[:, 0].min()):.2f}-{float(k[:, 0].max()):.2f}, fy {float(k[:, 1].min()):.2f}-{float(k[:, 1].max()):.2f}, "
+        f"cx {float(k[:, 2].mean()):.2f}, cy {float(k[:, 3].mean()):.2f} ({uniq}); horizontal fov {float(fov.mean()):.1f} deg",
+    )
+    if v.depth is None:
+        table.add_row("depth", "none")
+    else:
+        known = v.depth > 0
+        kind = v.meta.get("depth_kind", "sparse" if v.meta.get("depth_sparse") else "dense")
+        rng = f", {float(v.depth[known].min()):.3f}-{float(v.depth[known].max()):.3f}" if bool(known.any()) else ""
+        table.add_row("depth", f"{kind}: {100 * float(known.float().mean()):.2f}% of pixels known{rng}")
+    centre = scene_center(v.c2w)
+    dist = (v.c2w[:, :3, 3].to(torch.float64) - centre).norm(dim=-1)
+    table.add_row(
+        "cameras",
+        f"centre of the optical axes {_fmt(centre)}, distance {float(dist.min()):.3f}-{float(dist.max()):.3f}, up {_fmt(mean_up(v.c2w))}",
+    )
+    box_c, box_h, src = estimate_scene_box(v)
+    table.add_row("scene box", f"centre {_fmt(box_c)}, half-size {box_h:.3f} (from the {src})")
+    for note in v.meta.get("notes", []):
+        table.add_row("note", note)
+    console.print(table)
+
+
+def _fmt(t: torch.Tensor) -> str:
+    return "(" + ", ".join(f"{float(x):.3f}" for x in t) + ")"
