@@ -71,6 +71,7 @@ def load_views(
     width: int | None = None,
     load_depth: bool = True,
     images_dir: str | Path | None = None,
+    sfm_cache_dir: str | Path | None = None,
 ) -> Views:
     """Load ``source`` (a path or ``procedural[:k=v,...]``) as :class:`Views`.
 
@@ -79,6 +80,7 @@ def load_views(
     load_depth: read depth maps when the dataset has them (transforms.json ``depth_file_path``;
     COLMAP sparse depth from the 3-D points).
     images_dir: where a COLMAP model's images are, when not next to the model.
+    sfm_cache_dir: where SfM of an images-only folder keeps its result (default: not cached).
     """
     if width is not None and (not isinstance(width, int) or width < 1):
         raise DataError(f"width must be a positive integer, got {width!r}")
@@ -107,7 +109,10 @@ def load_views(
         return load_colmap(model, width=width, load_depth=load_depth, images_dir=images_dir)
     images = _list_images(path) or _list_images(path / "images")
     if images:
-        return _load_images_only(path, images, width=width)
+        return _load_images_only(path, images, width=width, cache_dir=sfm_cache_dir)
+    if (path / "split.json").is_file():
+        robots = sorted(p.name for p in path.glob("robot*") if p.is_dir())
+        raise DataError(f"{path} is the output of `dinerf-agent split`; load one of its folders: {robots + ['eval']}")
     found = sorted(p.name + ("/" if p.is_dir() else "") for p in path.iterdir())[:12]
     raise DataError(f"{path}: no known dataset layout; {EXPECTED_LAYOUTS}. Found: {found or 'an empty folder'}")
 
@@ -413,6 +418,9 @@ def load_transforms(json_path: str | Path, *, width: int | None = None, load_dep
 
     base = json_path.parent
     notes: set[str] = set()
+    dinerf = top["dinerf"] if isinstance(top.get("dinerf"), dict) else {}  # written by `dinerf-agent split`
+    # sparse depth (SfM points) must be resized point by point, not by nearest neighbour
+    sparse_depth = bool(dinerf.get("depth_sparse", False))
     factor = _num(top, "depth_unit_scale_factor", str(json_path))
     rel_paths: list[str] = []
     images: list[np.ndarray] = []
@@ -450,7 +458,7 @@ def load_transforms(json_path: str | Path, *, width: int | None = None, load_dep
             dpath = base / str(dfp)
             if not dpath.is_file():
                 raise DataError(f"{where}: depth file not found: {dpath}")
-            depth = resize_depth(_read_depth_file(dpath, factor, where), new_w, new_h)
+            depth = resize_depth(_read_depth_file(dpath, factor, where), new_w, new_h, sparse=sparse_depth)
         rel_paths.append(fp)
         images.append(img)
         depths.append(depth)
@@ -470,7 +478,7 @@ def load_transforms(json_path: str | Path, *, width: int | None = None, load_dep
         "source": str(json_path),
         "format": _transforms_flavour(top, frames),
         "notes": sorted(notes),
-        "depth_sparse": False,
+        "depth_sparse": sparse_depth,
     }
     for key in ("aabb_scale", "scale", "offset", "applied_transform", "camera_model"):
         if key in top:
@@ -642,7 +650,7 @@ def load_colmap(
 # --------------------------------------------------------------------------------------------
 
 
-def _load_images_only(folder: Path, images: list[Path], *, width: int | None) -> Views:
+def _load_images_only(folder: Path, images: list[Path], *, width: int | None, cache_dir: str | Path | None = None) -> Views:
     """Hand a folder of unposed images to ``agent.data.sfm.run_sfm``, imported lazily.
 
     The SfM module may return :class:`Views` or the path of a COLMAP model it wrote; both are
@@ -659,7 +667,9 @@ def _load_images_only(folder: Path, images: list[Path], *, width: int | None) ->
     if run is None:
         raise DataError(f"{folder}: holds only images, and agent.data.sfm has no run_sfm(); SfM support is not installed")
     params = inspect.signature(run).parameters
-    kwargs = {"width": width} if "width" in params else {}
+    kwargs: dict[str, Any] = {"width": width} if "width" in params else {}
+    if cache_dir is not None and "cache_dir" in params:
+        kwargs["cache_dir"] = cache_dir
     result = run(folder, **kwargs)
     if isinstance(result, Views):
         return resize_views(result, width) if width is not None and width != result.width else result

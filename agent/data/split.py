@@ -451,7 +451,14 @@ def write_split(result: SplitResult, out: str | Path, *, overwrite: bool = False
             rob.views,
             out / f"robot{rid}",
             write_poses=not cfg.images_only,
-            top_extra={"dinerf": {"robot_id": rid, "frame": "local", "depth_prior": cfg.depth_prior}},
+            top_extra={
+                "dinerf": {
+                    "robot_id": rid,
+                    "frame": "local",
+                    "depth_prior": cfg.depth_prior,
+                    "depth_sparse": bool(rob.views.meta.get("depth_sparse", False)) and rob.views.depth is not None,
+                }
+            },
         )
     if len(result.eval_indices):
         write_views_folder(

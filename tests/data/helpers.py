@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import cv2
@@ -52,3 +53,44 @@ def blender_dataset(root: Path, w: int = 16, h: int = 12, n: int = 3, **top) -> 
         write_png(root / "train" / f"r_{i}.png", random_rgba(h, w, i))
         frames.append({"file_path": f"./train/r_{i}", "rotation": 0.1, "transform_matrix": pose(30 * i, (i, 1, 4))})
     return write_json(root / "transforms_train.json", {"camera_angle_x": 0.8, **top, "frames": frames})
+
+
+def _qvec(rot: np.ndarray) -> np.ndarray:
+    """Rotation matrix -> COLMAP quaternion (w, x, y, z)."""
+    w = math.sqrt(max(0.0, 1 + np.trace(rot))) / 2
+    x = (rot[2, 1] - rot[1, 2]) / (4 * w)
+    y = (rot[0, 2] - rot[2, 0]) / (4 * w)
+    z = (rot[1, 0] - rot[0, 1]) / (4 * w)
+    return np.array([w, x, y, z])
+
+
+def colmap_dataset(root, model="PINHOLE", params=(50.0, 52.0, 20.5, 14.5), w=40, h=30):
+    """A text model with 2 images and 6 points whose keypoints are their exact projections."""
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-0.5, 0.5, (6, 3))
+    fx, fy, cx, cy = (params[0], params[0], params[1], params[2]) if model.startswith("SIMPLE") else params[:4]
+    w2cs = []
+    for i, angle in enumerate((0.0, 0.3)):
+        c, s = math.cos(angle), math.sin(angle)
+        rot = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+        w2cs.append((rot, np.array([0.1 * i, -0.05, 3.0])))
+    lines, tracks = [], {j: [] for j in range(len(points))}
+    keypoints = []
+    for i, (rot, t) in enumerate(w2cs):
+        q = _qvec(rot)
+        lines.append(f"{i + 1} {' '.join(map(str, q))} {' '.join(map(str, t))} 1 img{i}.png")
+        cam = points @ rot.T + t
+        uv = np.stack([fx * cam[:, 0] / cam[:, 2] + cx, fy * cam[:, 1] / cam[:, 2] + cy], -1)
+        keypoints.append((uv, cam[:, 2]))
+        lines.append(" ".join(f"{u} {v} {j + 1}" for j, (u, v) in enumerate(uv)) + " 3.0 4.0 -1")
+        for j in range(len(points)):
+            tracks[j].append(f"{i + 1} {j}")
+        write_png(root / "images" / f"img{i}.png", random_rgba(h, w, i)[..., :3])
+    model_dir = root / "sparse" / "0"
+    model_dir.mkdir(parents=True)
+    (model_dir / "cameras.txt").write_text(f"1 {model} {w} {h} {' '.join(map(str, params))}\n")
+    (model_dir / "images.txt").write_text("\n".join(lines) + "\n")
+    (model_dir / "points3D.txt").write_text(
+        "".join(f"{j + 1} {p[0]} {p[1]} {p[2]} 255 0 0 0.1 {' '.join(tracks[j])}\n" for j, p in enumerate(points))
+    )
+    return points, keypoints, (fx, fy, cx, cy)

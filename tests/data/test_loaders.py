@@ -14,7 +14,7 @@ import torch
 from agent.data.loaders import load_views, resize_depth
 from agent.data.views import DataError, Views
 
-from .helpers import blender_dataset, pose, random_rgba, write_json, write_png
+from .helpers import blender_dataset, colmap_dataset, pose, random_rgba, write_json, write_png
 
 # ------------------------------------------------------------------------------ transforms.json
 
@@ -132,49 +132,8 @@ def test_sparse_depth_downscale_keeps_every_point():
 # ------------------------------------------------------------------------------ COLMAP
 
 
-def _qvec(rot: np.ndarray) -> np.ndarray:
-    """Rotation matrix -> COLMAP quaternion (w, x, y, z)."""
-    w = math.sqrt(max(0.0, 1 + np.trace(rot))) / 2
-    x = (rot[2, 1] - rot[1, 2]) / (4 * w)
-    y = (rot[0, 2] - rot[2, 0]) / (4 * w)
-    z = (rot[1, 0] - rot[0, 1]) / (4 * w)
-    return np.array([w, x, y, z])
-
-
-def _colmap_dataset(root, model="PINHOLE", params=(50.0, 52.0, 20.5, 14.5), w=40, h=30):
-    """A text model with 2 images and 6 points whose keypoints are their exact projections."""
-    rng = np.random.default_rng(0)
-    points = rng.uniform(-0.5, 0.5, (6, 3))
-    fx, fy, cx, cy = (params[0], params[0], params[1], params[2]) if model.startswith("SIMPLE") else params[:4]
-    w2cs = []
-    for i, angle in enumerate((0.0, 0.3)):
-        c, s = math.cos(angle), math.sin(angle)
-        rot = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-        w2cs.append((rot, np.array([0.1 * i, -0.05, 3.0])))
-    lines, tracks = [], {j: [] for j in range(len(points))}
-    keypoints = []
-    for i, (rot, t) in enumerate(w2cs):
-        q = _qvec(rot)
-        lines.append(f"{i + 1} {' '.join(map(str, q))} {' '.join(map(str, t))} 1 img{i}.png")
-        cam = points @ rot.T + t
-        uv = np.stack([fx * cam[:, 0] / cam[:, 2] + cx, fy * cam[:, 1] / cam[:, 2] + cy], -1)
-        keypoints.append((uv, cam[:, 2]))
-        lines.append(" ".join(f"{u} {v} {j + 1}" for j, (u, v) in enumerate(uv)) + " 3.0 4.0 -1")
-        for j in range(len(points)):
-            tracks[j].append(f"{i + 1} {j}")
-        write_png(root / "images" / f"img{i}.png", random_rgba(h, w, i)[..., :3])
-    model_dir = root / "sparse" / "0"
-    model_dir.mkdir(parents=True)
-    (model_dir / "cameras.txt").write_text(f"1 {model} {w} {h} {' '.join(map(str, params))}\n")
-    (model_dir / "images.txt").write_text("\n".join(lines) + "\n")
-    (model_dir / "points3D.txt").write_text(
-        "".join(f"{j + 1} {p[0]} {p[1]} {p[2]} 255 0 0 0.1 {' '.join(tracks[j])}\n" for j, p in enumerate(points))
-    )
-    return points, keypoints, (fx, fy, cx, cy)
-
-
 def test_colmap_text_model_poses_intrinsics_and_sparse_depth(tmp_path):
-    points, keypoints, (fx, fy, cx, cy) = _colmap_dataset(tmp_path)
+    points, keypoints, (fx, fy, cx, cy) = colmap_dataset(tmp_path)
     v = load_views(tmp_path)  # finds sparse/0 and images/
     assert v.names == ["img0", "img1"] and v.images.shape == (2, 30, 40, 3)
     assert v.intrinsics[0].tolist() == pytest.approx([fx, fy, cx, cy])
@@ -195,7 +154,7 @@ def test_colmap_text_model_poses_intrinsics_and_sparse_depth(tmp_path):
 def test_colmap_binary_model_downscaled_and_distortion_note(tmp_path):
     import pycolmap
 
-    points, keypoints, _ = _colmap_dataset(tmp_path, model="SIMPLE_RADIAL", params=(50.0, 20.0, 15.0, 0.01))
+    points, keypoints, _ = colmap_dataset(tmp_path, model="SIMPLE_RADIAL", params=(50.0, 20.0, 15.0, 0.01))
     rec = pycolmap.Reconstruction(str(tmp_path / "sparse/0"))
     binary = tmp_path / "bin_model"
     binary.mkdir()
@@ -211,7 +170,7 @@ def test_colmap_binary_model_downscaled_and_distortion_note(tmp_path):
 
 
 def test_colmap_unsupported_model_is_a_clear_error(tmp_path):
-    _colmap_dataset(tmp_path, model="OPENCV_FISHEYE", params=(50.0, 52.0, 20.5, 14.5, 0.1, 0.0, 0.0, 0.0))
+    colmap_dataset(tmp_path, model="OPENCV_FISHEYE", params=(50.0, 52.0, 20.5, 14.5, 0.1, 0.0, 0.0, 0.0))
     with pytest.raises(DataError, match="OPENCV_FISHEYE.*undistort"):
         load_views(tmp_path)
 
@@ -311,7 +270,7 @@ def test_upscaling_and_missing_depth_file_are_errors(tmp_path):
 
 
 def test_a_colmap_folder_with_missing_images_names_the_image(tmp_path):
-    _colmap_dataset(tmp_path)
+    colmap_dataset(tmp_path)
     (tmp_path / "images/img1.png").unlink()
     with pytest.raises(DataError, match="img1.png"):
         load_views(tmp_path)

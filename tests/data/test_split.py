@@ -198,3 +198,21 @@ def test_split_errors(views, tmp_path):
         SplitConfig(overlap=0.5)
     with pytest.raises(DataError, match="frame must be one of"):
         SplitConfig(frame="nope")  # type: ignore[arg-type]
+
+
+def test_sparse_sfm_depth_survives_split_and_downscaled_reload(tmp_path):
+    from .helpers import colmap_dataset
+
+    colmap_dataset(tmp_path / "src")
+    src = load_views(tmp_path / "src")
+    r = split_views(src, SplitConfig(robots=1, holdout_every=0, depth_prior="true"))
+    write_split(r, tmp_path / "out")
+    back = load_views(tmp_path / "out/robot1")
+    assert back.meta["depth_sparse"] and torch.equal(back.depth, r.robots[1].views.depth)
+    small = load_views(tmp_path / "out/robot1", width=20)
+    for big, little in zip(back.depth, small.depth):  # every point lands in its pixel; only collisions merge
+        rows, cols = torch.nonzero(big > 0, as_tuple=True)
+        target = {(int(r) // 2, int(c) // 2) for r, c in zip(rows, cols)}
+        assert {(int(r), int(c)) for r, c in zip(*torch.nonzero(little > 0, as_tuple=True))} == target
+    with pytest.raises(DataError, match=r"output of `dinerf-agent split`.*robot1"):
+        load_views(tmp_path / "out")
