@@ -63,7 +63,8 @@ class AlignConfig:
     """Settings of the summary and of the pairwise estimate; defaults run in seconds on 2 cores."""
 
     # --- summary (per robot) ---
-    num_keyframes: int = 12  # K keyframes spread over the robot's views
+    num_keyframes: int = 48  # K keyframes spread over the robot's views (all views if fewer): more
+    # viewpoints match more of a neighbour's views; the byte budget still caps the payload
     max_bytes: int = 256_000  # cap on the payload: P <= max_bytes // 144
     sift_features: int = 2000  # SIFT detections per image
     sift_contrast: float = 0.02  # OpenCV contrastThreshold (lower = more features on flat CGI)

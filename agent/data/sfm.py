@@ -53,14 +53,17 @@ class SfmConfig:
     focal_px: float | None = None  # known focal length in pixels of the original images (else guessed)
     refine_focal: bool = True  # let bundle adjustment refine the focal length (even a known one)
     max_num_features: int = 4096  # SIFT features per image
-    exhaustive_max_images: int = 60  # exhaustive matching up to this many images, sequential above
+    exhaustive_max_images: int = 150  # exhaustive matching up to this many images (~30 s at 100);
+    # sequential above, which assumes the file names follow the capture order (a trajectory)
     sequential_overlap: int = 10  # neighbours (in natural name order) matched in sequential mode
     num_threads: int = 2
     seed: int = 0
     background: float = 1.0  # RGBA images are composited onto this grey level before SfM
     min_registered: int = 3  # fewer registered images than this is an error ...
     min_registered_fraction: float = 0.3  # ... and so is fewer than this fraction of the images
-    abs_pose_min_inliers: int = 15  # COLMAP's default 30 drops views of small, sparse robot sets
+    structure_less_fallback: bool = False  # COLMAP 4's 2-D-only registration fallback; it placed
+    # lego views mirrored through the object (178 deg off), so it is off by default
+    abs_pose_min_inliers: int = 30  # COLMAP's default; 15 let planar-ambiguity (mirrored) poses in
     depth_min_track_length: int = 2  # SfM points seen by fewer images do not enter the depth prior
     depth_max_reproj_error: float = 2.0  # px; nor do points with a larger mean reprojection error
     max_runtime_seconds: int = -1  # mapper time limit, -1 = none
@@ -223,6 +226,7 @@ def _reconstruct(files: list[Path], work: Path, config: SfmConfig) -> dict:
     mapping.mapper.num_threads = config.num_threads
     mapping.triangulation.random_seed = config.seed
     mapping.mapper.abs_pose_min_num_inliers = config.abs_pose_min_inliers
+    mapping.structure_less_registration_fallback = config.structure_less_fallback
     mapping.ba_use_gpu = False
     mapping.ba_refine_principal_point = False
     mapping.ba_refine_focal_length = config.refine_focal

@@ -94,7 +94,9 @@ def test_sfm_on_a_few_lego_views_agrees_with_the_truth(tmp_path):
     for i in idx:  # the original RGBA files, as a robot with images only would have them
         (folder / f"{truth.names[i]}.png").write_bytes((LEGO / "train" / f"{truth.names[i]}.png").read_bytes())
     views = run_sfm(folder, tmp_path / "cache", config=SfmConfig(max_image_size=400))
-    assert len(views) >= len(idx) - 2, views.meta["unregistered"]
+    # Coverage is traded for correctness (COLMAP's 30-inlier rule): 10 of these 13 register.
+    assert len(views) >= 0.6 * len(idx), views.meta["unregistered"]
+    assert len(views) + len(views.meta["unregistered"]) == len(idx)
     true_c2w = truth.c2w[[truth.names.index(n) for n in views.names]]
     rot, centre, _ = _aligned_errors(views.c2w, true_c2w)
-    assert np.median(rot) < 1.0 and np.median(centre) < 0.05, (rot, centre)  # cameras at radius ~4
+    assert rot.max() < 2.0 and np.median(rot) < 1.0 and np.median(centre) < 0.05, (rot, centre)  # radius ~4
