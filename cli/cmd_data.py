@@ -63,7 +63,7 @@ def split(
         table.add_row(
             f"{rid}" + (" (ref)" if rid == result.reference_id else ""),
             str(len(rob.indices)),
-            f"{a % 360:.0f} .. {b % 360:.0f}",
+            "all" if len(result.robots) == 1 else f"{a % 360:.0f} .. {b % 360:.0f}",
             f"{100 * rob.overlap:.0f}%",
             desc,
         )

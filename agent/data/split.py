@@ -320,7 +320,8 @@ def split_views(views: Views, cfg: SplitConfig | None = None) -> SplitResult:
             f"or a COLMAP model); {views.meta.get('source', 'this source')} has none"
         )
     eval_idx = list(range(0, m, cfg.holdout_every)) if cfg.holdout_every else []
-    train_idx = [i for i in range(m) if i not in set(eval_idx)]
+    held = set(eval_idx)
+    train_idx = [i for i in range(m) if i not in held]
     if not train_idx:
         raise DataError(f"no training views left: {m} views with holdout_every={cfg.holdout_every}")
 
@@ -370,7 +371,7 @@ def split_views(views: Views, cfg: SplitConfig | None = None) -> SplitResult:
     if eval_idx:
         mem_eval = _membership(az[eval_idx], starts, width, delta)
         seen_by = [[ids[k] for k in np.nonzero(row)[0]] for row in mem_eval]
-    eval_views = views.subset(eval_idx) if eval_idx else views.subset([])
+    eval_views = views.subset(eval_idx)
     box_c, box_h, box_src = estimate_scene_box(views)
     if box_src != "dataset":
         notes.append(f"scene box estimated from the {box_src}: centre {box_c.tolist()}, half-size {box_h:.3f}")
