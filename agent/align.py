@@ -22,6 +22,7 @@ Trainer usage (robot i, reference r)::
     s_i = summarise(views_i)                       # once, published to the neighbours
     res = estimate_relative(s_j, s_i)              # on neighbour j: T_j_from_i (or a reason)
     T = compose_along_graph(r, {(j, i): res, ...}).get(i)   # T_r_from_i = initial T_i, or None
+    T, res = initial_pose(views_i, s_r)            # the one-hop case, identity if nothing found
 
 Everything is numpy/OpenCV on the CPU and deterministic for ``AlignConfig.seed``.
 """
@@ -48,6 +49,7 @@ __all__ = [
     "summarise",
     "estimate_relative",
     "compose_along_graph",
+    "initial_pose",
     "match_summaries",
     "ransac_sim3",
     "triangulate_rays",
@@ -653,6 +655,18 @@ def compose_along_graph(reference: Hashable, estimates: Mapping[tuple[Hashable, 
         hops_of[dst] = hops
         push(dst, hops)
     return out
+
+
+def initial_pose(own: Views | Summary, reference: Summary, cfg: AlignConfig = AlignConfig()
+                 ) -> tuple[np.ndarray, AlignmentResult]:
+    """The robot's starting ``T_i`` (= ``T_ref_from_own``, [4, 4] float64) from the reference's summary.
+
+    Falls back to the identity (the paper's start) when the coarse step fails; the returned
+    :class:`AlignmentResult` says which happened and why, for telemetry.
+    """
+    own_summary = own if isinstance(own, Summary) else summarise(own, "auto", cfg)
+    res = estimate_relative(reference, own_summary, cfg)
+    return (res.T_a_from_b.copy() if res.success else np.eye(4)), res
 
 
 def _sim3_inv(t: np.ndarray) -> np.ndarray:

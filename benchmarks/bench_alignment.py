@@ -27,11 +27,13 @@ truth is the SfM->world similarity of each robot (Umeyama on its camera centres)
 from __future__ import annotations
 
 import argparse
+import hashlib
 import math
 import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -80,7 +82,7 @@ def sfm_robot(data: Path, names: list[str], cache: Path, feature_width: int) -> 
     from agent.data.loaders import load_views
     from agent.data.sfm import run_sfm
 
-    key = f"{len(names)}_{abs(hash(tuple(names))) % 10**10}"
+    key = f"{len(names)}_{hashlib.sha1(','.join(names).encode()).hexdigest()[:10]}"  # stable across runs
     folder = cache / "images" / key
     folder.mkdir(parents=True, exist_ok=True)
     for n in names:
@@ -121,6 +123,7 @@ def main() -> None:
     ap.add_argument("--keyframes", type=int, default=AlignConfig.num_keyframes)
     args = ap.parse_args()
     torch.set_num_threads(2)
+    cv2.setNumThreads(2)
 
     if not args.data.is_dir():
         sys.exit(f"{args.data} is absent: this benchmark needs lego from ../shared/data")
@@ -154,7 +157,7 @@ def main() -> None:
             va, w_from_a = sfm_robot(args.data, [views.names[i] for i in ia], args.cache, args.feature_width)
             vb, w_from_b = sfm_robot(args.data, names_b, args.cache, args.feature_width)
             truth = G.sim3_inverse(w_from_a) @ w_from_b  # T_a_from_b between the two SfM frames
-            true_b_centres = G.transform_points(w_from_b, vb.c2w[:, :3, 3].double())  # world = A's truth frame
+            true_b_centres = G.transform_points(w_from_b, vb.c2w[:, :3, 3].double())  # B's SfM, ideally placed
             a_from_world = G.sim3_inverse(w_from_a)
             print(f"      SfM A: {len(va)}/{len(ia)} registered, {va.meta['bench_bad_cameras']} off by > 5 deg, "
                   f"median {va.meta['bench_median_rot_deg']:.2f} deg, {va.meta['sfm_seconds']:.0f} s; "
@@ -176,11 +179,12 @@ def main() -> None:
                "sum_a": sa.nbytes, "sum_b": sb.nbytes, "png_b": file_bytes(args.data, names_b),
                "raw_b": len(names_b) * 100 * 100 * 4, "t_sum": (t2 - t1) / 2, "t_est": t3 - t2}
         if res.success:
-            est = torch.from_numpy(res.T_a_from_b)
-            err = G.pose_error(est, truth)
-            # B's cameras mapped into A's frame with the estimate vs where they truly are.
-            cam = (G.transform_points(est, vb.c2w[:, :3, 3].double())
-                   - G.transform_points(a_from_world, true_b_centres)).norm(dim=1).mean()
+            # Errors in lego units: A's frame is the world up to a_from_world (identity unless SfM).
+            to_world = G.sim3_inverse(a_from_world)
+            est = to_world @ torch.from_numpy(res.T_a_from_b)
+            err = G.pose_error(est, to_world @ truth)
+            # B's cameras mapped into the world with the estimate vs where they truly are.
+            cam = (G.transform_points(est, vb.c2w[:, :3, 3].double()) - true_b_centres).norm(dim=1).mean()
             row.update(rot=err["rotation_deg"], t=err["translation"], scale=100 * err["scale_rel"], cam=float(cam))
         rows.append(row)
         fmt = (lambda k, f: f.format(row[k]) if k in row else "-".rjust(len(f.format(0.0))))

@@ -157,3 +157,17 @@ def test_compose_prefers_the_most_trusted_path():
     out = compose_along_graph(0, estimates)
     assert np.allclose(out[2], truth[2], atol=1e-8)
     assert not math.isclose(float(np.abs(out[2] - wrong).max()), 0.0)
+
+
+def test_initial_pose_falls_back_to_identity_and_says_so():
+    from agent.align import initial_pose
+
+    rng = np.random.default_rng(5)
+    ref = _summary(_descriptors(rng, 300), _surface_points(rng, 300))
+    t_ref_from_own = _sim3(30)
+    own = _summary(ref.descriptors.copy(), _apply(np.linalg.inv(t_ref_from_own), ref.points.astype(np.float64)))
+    t, res = initial_pose(own, ref)
+    assert res.success and np.allclose(t, t_ref_from_own, atol=1e-3)
+    stranger = _summary(_descriptors(rng, 300), _surface_points(rng, 300))
+    t, res = initial_pose(stranger, ref)
+    assert not res.success and np.array_equal(t, np.eye(4)) and res.reason
