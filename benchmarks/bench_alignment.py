@@ -1,27 +1,28 @@
 """Coarse initial alignment on lego: success rate and error of the coarse step alone.
 
-Two robots split lego's 100 training views into two azimuth sectors that share ``--overlap`` of
-each sector (views in the shared arc belong to both robots, as in the sector splits of the
-Di-NeRF paper). Robot A is the reference (true frame); robot B's views are moved into a random
-local frame: rotation uniform in axis with an angle uniform in [0, 180] deg, translation uniform
-in direction with a length uniform in [0, 3 scene radii] (scene radius = the radius of lego's
-camera sphere, ~4.0 units), and with ``--scale`` a scale log-uniform in [1/2, 2]. The sector start
-is random per trial too, so the 20 trials see 20 different pairs of sectors.
+Two robots get lego's training views (every 8th view held out, as in evaluation) by the project's
+own sector split (``agent.data.split.split_views``): two azimuth sectors widened until 20% of each
+robot's views are also held by the other (``--overlap``). Each robot's local frame is random
+(``frame="random"``): rotation about a uniform axis by an angle uniform in [0, 180] deg,
+translation uniform in a ball of 3 scene radii (scene radius = radius of lego's camera sphere,
+~4.0 units), and with ``--scale`` a scale log-uniform in [1/2, 2]. The sector start is random per
+trial too, so the 20 trials see 20 different pairs of sectors. Robot 1 is the reference.
 
 Printed per trial and overall: whether the coarse step succeeded, rotation/translation/scale
-error of T_a_from_b against the truth, the mean error of B's camera centres mapped into A's frame
-(what the NeRF actually sees), and the summary bytes next to the robot's image bytes. The joint
-NeRF refinement is not run here.
+error of T_a_from_b against the truth (in lego units), the mean error of B's camera centres mapped
+into the world (what the NeRF actually sees), and the summary bytes next to the robot's image
+bytes. The joint NeRF refinement is not run here.
 
 Modes: ``--feature-width`` is the resolution the features are computed at (100 = the training
 resolution; 400 = the originals in ../shared/data). ``--disjoint`` drops the shared views from
 B (no image in common, only a shared region). ``--sfm`` gives each robot images only: it runs its
 own SfM (agent.data.sfm, cached under --cache), so its local frame and scale are SfM's, and the
-truth is the SfM->world similarity of each robot (Umeyama on its camera centres).
+truth is the SfM->world similarity of each robot (trimmed Umeyama on its camera centres).
 
     .venv/bin/python benchmarks/bench_alignment.py --feature-width 100
     .venv/bin/python benchmarks/bench_alignment.py --feature-width 400
-    .venv/bin/python benchmarks/bench_alignment.py --feature-width 400 --sfm --trials 5
+    .venv/bin/python benchmarks/bench_alignment.py --feature-width 100 --disjoint
+    .venv/bin/python benchmarks/bench_alignment.py --feature-width 100 --sfm --trials 5
 """
 
 from __future__ import annotations
@@ -42,35 +43,8 @@ sys.path.insert(0, str(ROOT))
 
 from agent import geometry as G  # noqa: E402
 from agent.align import AlignConfig, estimate_relative, summarise  # noqa: E402
+from agent.data.split import SplitConfig, split_views  # noqa: E402
 from agent.data.views import Views  # noqa: E402
-
-
-def sector_split(c2w: torch.Tensor, start_deg: float, overlap: float) -> tuple[list[int], list[int]]:
-    """Two azimuth sectors covering the circle, each sharing ``overlap`` of its width with the other."""
-    az = torch.rad2deg(torch.atan2(c2w[:, 1, 3], c2w[:, 0, 3])).numpy()
-    width = 360.0 / (2.0 - overlap)
-    a = [i for i in range(len(az)) if (az[i] - start_deg) % 360.0 < width]
-    b = [i for i in range(len(az)) if (az[i] - start_deg - width * (1 - overlap)) % 360.0 < width]
-    return a, b
-
-
-def random_offset(g: torch.Generator, radius: float, with_scale: bool) -> torch.Tensor:
-    """T_local_from_world [4, 4] float64: a robot's unknown local frame."""
-    out = torch.eye(4, dtype=torch.float64)
-    rot = G.random_rotation(g, 180.0)
-    scale = math.exp(float(torch.empty((), dtype=torch.float64).uniform_(-math.log(2), math.log(2), generator=g))) \
-        if with_scale else 1.0
-    direction = torch.randn(3, generator=g, dtype=torch.float64)
-    length = float(torch.rand((), generator=g, dtype=torch.float64)) * 3.0 * radius
-    out[:3, :3] = scale * rot
-    out[:3, 3] = direction / direction.norm() * length
-    return out
-
-
-def moved(views: Views, t: torch.Tensor) -> Views:
-    out = views.subset(list(range(len(views))))
-    out.c2w = G.transform_c2w(t, views.c2w.double()).float()
-    return out
 
 
 def file_bytes(data: Path, names: list[str]) -> int:
@@ -134,12 +108,13 @@ def main() -> None:
     print(f"lego: {len(views)} views at {views.width}x{views.height} for features "
           f"(loaded in {time.perf_counter() - t0:.1f}s); overlap {args.overlap:.0%} of each sector; "
           f"{'Sim(3)' if args.scale or args.sfm else 'SE(3)'}; {'disjoint images' if args.disjoint else 'shared views in the overlap'}"
-          f"{'; per-robot SfM' if args.sfm else '; true local poses'}")
+          f"{'; per-robot SfM' if args.sfm else '; true local poses'}; views 0, 8, 16 ... held out")
     centres = views.c2w[:, :3, 3].double()
     radius = float(centres.norm(dim=1).median())
     print(f"scene radius (camera sphere) {radius:.3f}; offsets: rotation U[0,180] deg, translation U[0,{3 * radius:.1f}]")
     cfg = AlignConfig(num_keyframes=args.keyframes, with_scale=args.scale or args.sfm, seed=args.seed)
 
+    views = views.subset([i for i in range(len(views)) if i % 8 != 0])  # held out for evaluation
     g = torch.Generator().manual_seed(args.seed)
     rows = []
     header = ("trial  nA  nB shared  ok  inl/match  rot_deg   t_err  scale%  cam_err  init_rot init_t  "
@@ -147,34 +122,39 @@ def main() -> None:
     print(header)
     for trial in range(args.trials):
         start = float(torch.rand((), generator=g)) * 360.0 - 180.0
-        offset = random_offset(g, radius, args.scale)
-        ia, ib = sector_split(views.c2w, start, args.overlap)
+        split = split_views(views, SplitConfig(
+            robots=2, overlap=args.overlap, frame="random", random_max_angle_deg=180.0,
+            random_max_translation=3.0 * radius, random_max_scale=2.0 if args.scale else 1.0,
+            sector_start_deg=start, seed=args.seed * 1000 + trial))
+        ra, rb = split.robots[1], split.robots[2]
+        ia, ib = list(ra.indices), list(rb.indices)
         shared = len(set(ia) & set(ib))
+        vb_local = rb.views
         if args.disjoint:
-            ib = [i for i in ib if i not in set(ia)]
+            keep = [k for k, i in enumerate(ib) if i not in set(ia)]
+            ib = [ib[k] for k in keep]
+            vb_local = vb_local.subset(keep)
         names_b = [views.names[i] for i in ib]
         if args.sfm:
             va, w_from_a = sfm_robot(args.data, [views.names[i] for i in ia], args.cache, args.feature_width)
             vb, w_from_b = sfm_robot(args.data, names_b, args.cache, args.feature_width)
-            truth = G.sim3_inverse(w_from_a) @ w_from_b  # T_a_from_b between the two SfM frames
             true_b_centres = G.transform_points(w_from_b, vb.c2w[:, :3, 3].double())  # B's SfM, ideally placed
-            a_from_world = G.sim3_inverse(w_from_a)
             print(f"      SfM A: {len(va)}/{len(ia)} registered, {va.meta['bench_bad_cameras']} off by > 5 deg, "
                   f"median {va.meta['bench_median_rot_deg']:.2f} deg, {va.meta['sfm_seconds']:.0f} s; "
                   f"SfM B: {len(vb)}/{len(ib)}, {vb.meta['bench_bad_cameras']} off, median "
                   f"{vb.meta['bench_median_rot_deg']:.2f} deg, {vb.meta['sfm_seconds']:.0f} s", flush=True)
         else:
-            va = views.subset(ia)
-            vb = moved(views.subset(ib), offset)
-            truth = G.sim3_inverse(offset)
+            va, w_from_a = ra.views, ra.T_world_from_local
+            vb, w_from_b = vb_local, rb.T_world_from_local
             true_b_centres = views.c2w[ib, :3, 3].double()
-            a_from_world = torch.eye(4, dtype=torch.float64)
+        truth = G.sim3_inverse(w_from_a) @ w_from_b  # T_a_from_b
+        a_from_world = G.sim3_inverse(w_from_a)
         t1 = time.perf_counter()
         sa, sb = summarise(va, "triangulate", cfg), summarise(vb, "triangulate", cfg)
         t2 = time.perf_counter()
         res = estimate_relative(sa, sb, cfg)
         t3 = time.perf_counter()
-        init = G.pose_error(torch.eye(4, dtype=torch.float64), truth)
+        init = G.pose_error(torch.eye(4, dtype=torch.float64), truth)  # the paper's identity start
         row = {"ok": res.success, "init_rot": init["rotation_deg"], "init_t": init["translation"],
                "sum_a": sa.nbytes, "sum_b": sb.nbytes, "png_b": file_bytes(args.data, names_b),
                "raw_b": len(names_b) * 100 * 100 * 4, "t_sum": (t2 - t1) / 2, "t_est": t3 - t2}
