@@ -39,6 +39,7 @@ __all__ = [
     "umeyama_batched",
     "look_at",
     "random_rotation",
+    "box_from_center",
 ]
 
 
@@ -264,3 +265,11 @@ def random_rotation(generator: torch.Generator, max_angle_deg: float = 180.0) ->
     axis = axis / axis.norm()
     angle = torch.rand((), generator=generator, dtype=torch.float64) * math.radians(max_angle_deg)
     return so3_exp(axis * angle)
+
+
+def box_from_center(center: Tensor, half_size: float) -> Tensor:
+    """The similarity mapping the cube ``center +- half_size`` onto [-1, 1]^3: ``(x - c) / h``. -> [4, 4] float64."""
+    out = torch.eye(4, dtype=torch.float64) / half_size
+    out[3, 3] = 1.0
+    out[:3, 3] = -torch.as_tensor(center, dtype=torch.float64) / half_size
+    return out

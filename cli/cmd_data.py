@@ -13,7 +13,7 @@ from rich.table import Table
 from cli.errors import friendly_errors
 from cli.main import app
 
-DATA_HELP = "Dataset: a folder (transforms.json, COLMAP sparse/0, images), a json file, or procedural[:views=100,width=64,seed=0]."
+from cli.options import DATA_HELP
 
 
 @app.command()

@@ -28,10 +28,10 @@ from torch import Tensor
 
 from agent.data.views import DataError, Views
 
-__all__ = ["write_views_folder", "write_json", "read_scene", "read_truth", "SceneInfo"]
+__all__ = ["write_views_folder", "write_json", "write_png", "matrix_to_list", "read_scene", "read_truth", "SceneInfo"]
 
 
-def _matrix(t: Tensor | np.ndarray) -> list[list[float]]:
+def matrix_to_list(t: Tensor | np.ndarray) -> list[list[float]]:
     return [[float(x) for x in row] for row in np.asarray(t, dtype=np.float64)]
 
 
@@ -39,7 +39,7 @@ def write_json(path: Path, data: Any) -> None:
     path.write_text(json.dumps(data, indent=2) + "\n")
 
 
-def _write_png(path: Path, img: np.ndarray) -> None:
+def write_png(path: Path, img: np.ndarray) -> None:
     """img: [H, W, 3|4] float in [0, 1] -> 8-bit PNG (OpenCV wants BGR(A))."""
     q = np.round(np.clip(img, 0.0, 1.0) * 255.0).astype(np.uint8)
     q = q[:, :, [2, 1, 0, 3]] if q.shape[2] == 4 else q[:, :, ::-1]
@@ -65,7 +65,7 @@ def write_views_folder(
     (folder / "images").mkdir(parents=True, exist_ok=True)
     images = views.images.numpy()
     for name, img in zip(views.names, images):
-        _write_png(folder / "images" / f"{name}.png", img)
+        write_png(folder / "images" / f"{name}.png", img)
     if not write_poses:
         return None
     if views.depth is not None:
@@ -84,7 +84,7 @@ def write_views_folder(
         top.update(top_extra)
     frames = []
     for i, name in enumerate(views.names):
-        fr: dict[str, Any] = {"file_path": f"images/{name}.png", "transform_matrix": _matrix(views.c2w[i])}
+        fr: dict[str, Any] = {"file_path": f"images/{name}.png", "transform_matrix": matrix_to_list(views.c2w[i])}
         if not shared:
             fr.update(zip(("fl_x", "fl_y", "cx", "cy"), (float(x) for x in intr[i])))
         if views.depth is not None:

@@ -43,9 +43,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from agent.data.folder import _matrix, write_json, write_views_folder
+from agent.data.folder import matrix_to_list, write_json, write_views_folder
 from agent.data.views import DataError, Views
-from agent.geometry import random_rotation, sim3_decompose, sim3_inverse, so3_exp, transform_c2w
+from agent.geometry import box_from_center, random_rotation, sim3_decompose, sim3_inverse, so3_exp, transform_c2w
 
 __all__ = [
     "SplitConfig",
@@ -149,10 +149,7 @@ class SplitResult:
     @property
     def box_from_world(self) -> Tensor:
         """[4, 4]: world -> normalised box coordinates, ``(x - centre) / half_size``."""
-        out = torch.eye(4, dtype=torch.float64) / self.box_half_size
-        out[3, 3] = 1.0
-        out[:3, 3] = -self.box_center_world.to(torch.float64) / self.box_half_size
-        return out
+        return box_from_center(self.box_center_world, self.box_half_size)
 
     @property
     def box_from_shared(self) -> Tensor:
@@ -483,8 +480,8 @@ def write_split(result: SplitResult, out: str | Path, *, overwrite: bool = False
     }
     for rid, rob in result.robots.items():
         entry = {
-            "T_world_from_local": _matrix(rob.T_world_from_local),
-            "T_shared_from_local": _matrix(t_shared[rid]),
+            "T_world_from_local": matrix_to_list(rob.T_world_from_local),
+            "T_shared_from_local": matrix_to_list(t_shared[rid]),
             "scale": float(sim3_decompose(rob.T_world_from_local)[0]),
         }
         if rob.depth_affine is not None:
@@ -526,7 +523,7 @@ def write_split(result: SplitResult, out: str | Path, *, overwrite: bool = False
         out / "scene.json",
         {
             "reference_id": result.reference_id,
-            "box_from_shared": _matrix(result.box_from_shared),
+            "box_from_shared": matrix_to_list(result.box_from_shared),
             "description": (
                 "box_from_shared maps the shared frame g (the local frame of the reference robot) into the "
                 "normalised field box [-1, 1]^3; robot i maps its local points with box_from_shared @ T_i."

@@ -1,0 +1,123 @@
+"""Consensus ADMM (C-ADMM) in DiNNO's form, over the parameters of any torch module.
+
+One robot i in round k minimises, for B optimiser steps,
+
+    L_i(theta) + <theta, y_i> + rho_k * sum_{j in N_i} || theta - (theta_i^k + theta_j^k) / 2 ||^2
+
+then publishes theta_i^{k+1}, receives theta_j^{k+1} from the neighbours that answered, and
+updates its dual ``y_i += rho_k * sum_j (theta_i^{k+1} - theta_j^{k+1})`` over those only.
+
+The penalty is applied as an explicit gradient added after ``backward()`` (no autograd graph
+over millions of parameters): ``d/dtheta = y_i + 2 rho_k (n theta - sum_j a_j)`` with the
+anchors ``a_j = (theta_i^k + theta_j^k) / 2``. Nothing here knows about NeRF or the network.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import torch
+from torch import Tensor
+
+
+@dataclass
+class ConsensusConfig:
+    rho0: float = 0.1
+    rho_growth: float = 1.0  # rho_k = rho0 * rho_growth**k  (DiNNO grows it slowly)
+    rho_max: float = 1e6
+
+    def __post_init__(self) -> None:
+        if self.rho0 <= 0 or self.rho_growth < 1.0 or self.rho_max < self.rho0:
+            raise ValueError("need rho0 > 0, rho_growth >= 1 and rho_max >= rho0")
+
+    def rho(self, round_index: int) -> float:
+        return min(self.rho0 * self.rho_growth**round_index, self.rho_max)
+
+
+class Consensus:
+    """The C-ADMM state of one robot: duals, the current round's anchors and rho."""
+
+    def __init__(self, params: Sequence[Tensor], cfg: ConsensusConfig) -> None:
+        self.cfg = cfg
+        self.duals = [torch.zeros_like(p, memory_format=torch.contiguous_format) for p in params]
+        self.anchor_sum: list[Tensor] | None = None  # sum_j (theta_i^k + theta_j^k) / 2
+        self.num_neighbours = 0
+        self.rho = cfg.rho(0)
+        self.round = 0
+
+    # --- one round -------------------------------------------------------------------------
+    @torch.no_grad()
+    def begin_round(self, round_index: int, own: Sequence[Tensor], neighbours: Mapping[int, Sequence[Tensor]]) -> None:
+        """Fix the anchors of round k from theta_i^k and the theta_j^k of the neighbours heard."""
+        self.round = round_index
+        self.rho = self.cfg.rho(round_index)
+        self.num_neighbours = len(neighbours)
+        if not neighbours:
+            self.anchor_sum = None
+            return
+        sums = [o.detach().clone().mul_(0.5 * self.num_neighbours) for o in own]
+        for theta_j in neighbours.values():
+            for s, t in zip(sums, theta_j):
+                s.add_(t, alpha=0.5)
+        self.anchor_sum = sums
+
+    @torch.no_grad()
+    def add_penalty_grad(self, params: Sequence[Tensor]) -> None:
+        """Add the gradient of ``<theta, y> + rho sum_j ||theta - a_j||^2`` to ``p.grad``."""
+        for i, p in enumerate(params):
+            g = self.duals[i].clone()
+            if self.anchor_sum is not None:
+                g.add_(p.detach() * self.num_neighbours - self.anchor_sum[i], alpha=2 * self.rho)
+            if p.grad is None:
+                p.grad = g
+            else:
+                p.grad.add_(g)
+
+    @torch.no_grad()
+    def penalty(self, params: Sequence[Tensor]) -> float:
+        """Value of the consensus terms (for logs): ``<theta, y> + rho sum_j ||theta - a_j||^2``.
+
+        Uses ``sum_j ||x - a_j||^2 = n ||x||^2 - 2 <x, sum_j a_j> + sum_j ||a_j||^2``; the last
+        term is constant within a round and left out, so only changes of this value are meaningful.
+        """
+        total = 0.0
+        for i, p in enumerate(params):
+            x = p.detach()
+            total += float((x * self.duals[i]).sum())
+            if self.anchor_sum is not None:
+                total += self.rho * float(self.num_neighbours * (x * x).sum() - 2 * (x * self.anchor_sum[i]).sum())
+        return total
+
+    @torch.no_grad()
+    def dual_update(self, own: Sequence[Tensor], neighbours: Mapping[int, Sequence[Tensor]]) -> None:
+        """``y_i += rho_k sum_j (theta_i^{k+1} - theta_j^{k+1})`` over the neighbours heard."""
+        for theta_j in neighbours.values():
+            for y, o, t in zip(self.duals, own, theta_j):
+                y.add_(o.detach() - t, alpha=self.rho)
+
+    # --- persistence ---------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {"duals": [d.clone() for d in self.duals], "rho": self.rho, "round": self.round}
+
+    def load_state_dict(self, state: dict) -> None:
+        duals = state["duals"]
+        if len(duals) != len(self.duals) or any(a.shape != b.shape for a, b in zip(duals, self.duals)):
+            raise ValueError("consensus state does not match the model's parameter shapes")
+        self.duals = [d.clone() for d in duals]
+        self.rho = float(state["rho"])
+        self.round = int(state["round"])
+        self.anchor_sum = None
+        self.num_neighbours = 0
+
+
+def disagreement(thetas: Sequence[Sequence[Tensor]]) -> list[float]:
+    """Per robot ``||theta_i - mean|| / ||mean||`` over all parameters (a consensus metric)."""
+    count = len(thetas)
+    mean = [sum(t[i] for t in thetas) / count for i in range(len(thetas[0]))]
+    mean_norm = sum(float((m * m).sum()) for m in mean) ** 0.5
+    out = []
+    for t in thetas:
+        d = sum(float(((a - m) ** 2).sum()) for a, m in zip(t, mean)) ** 0.5
+        out.append(d / max(mean_norm, 1e-30))
+    return out

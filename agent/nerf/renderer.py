@@ -1,0 +1,99 @@
+"""Volume rendering of colour, depth and opacity from packed samples, and whole-ray rendering.
+
+``render_rays`` is the single entry point used by training and evaluation: it maps rays from the
+shared frame into the field's box, marches them through the occupancy grid, evaluates the field
+with gradients only on the samples that survive early termination, and composites.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from agent.nerf.field import NGPField
+from agent.nerf.occupancy import OccupancyGrid
+from agent.nerf.rays import Rays, transform_rays
+from agent.nerf.sampler import MarchConfig, Samples, exclusive_segment_cumsum, march
+
+
+@dataclass
+class RenderOutput:
+    rgb: Tensor  # [R, 3] composited onto the background
+    depth: Tensor  # [R] z-depth in the rays' source frame, expected under the weights (0 where empty)
+    opacity: Tensor  # [R] accumulated alpha
+    num_samples: int
+
+
+def composite(sigma: Tensor, rgb: Tensor, samples: Samples) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-ray colour, expected distance and opacity.
+
+    sigma: [S], rgb: [S, 3] -> (rgb [R, 3], t [R], opacity [R]) with
+    ``w_k = T_k (1 - exp(-sigma_k dt_k))``, ``T_k = exp(-sum_{j<k} sigma_j dt_j)``.
+    """
+    r = samples.num_rays
+    sigma_dt = sigma * samples.dt
+    transmittance = torch.exp(-exclusive_segment_cumsum(sigma_dt, samples.ray_index, r))
+    weights = transmittance * (1 - torch.exp(-sigma_dt))  # [S]
+    idx = samples.ray_index
+    color = torch.zeros(r, 3, dtype=rgb.dtype, device=rgb.device).index_add(0, idx, weights[:, None] * rgb)
+    dist = torch.zeros(r, dtype=rgb.dtype, device=rgb.device).index_add(0, idx, weights * samples.t_mid)
+    opacity = torch.zeros(r, dtype=rgb.dtype, device=rgb.device).index_add(0, idx, weights)
+    return color, dist, opacity
+
+
+def render_rays(
+    field: NGPField,
+    grid: OccupancyGrid,
+    rays: Rays,
+    background: Tensor,
+    march_cfg: MarchConfig,
+    box_from_frame: Tensor,
+    jitter: Tensor | None = None,
+    level_weights: Tensor | None = None,
+) -> RenderOutput:
+    """Render rays given in some frame (shared frame ``g``) with the field living in its box.
+
+    rays: R rays; background: [R, 3] or [3]; box_from_frame: [4, 4] similarity into [-1, 1]^3;
+    jitter: [R] sample offsets in [0, 1) for training, None for deterministic evaluation.
+    Gradients flow into the field and, through ``rays``, into any pose that produced them.
+    """
+    box_rays = transform_rays(rays, box_from_frame)
+
+    def density_fn(x: Tensor) -> Tensor:
+        return field.density(x, level_weights)[0]
+
+    samples = march(box_rays.origins.detach(), box_rays.directions.detach(), grid, density_fn, march_cfg, jitter)
+    idx = samples.ray_index
+    x = box_rays.origins[idx] + samples.t_mid[:, None] * box_rays.directions[idx]  # [S, 3], differentiable
+    sigma, rgb = field(x, box_rays.directions[idx], level_weights)
+    color, dist, opacity = composite(sigma, rgb, samples)
+    bg = background.expand_as(color) if background.ndim == 1 else background
+    color = color + (1 - opacity[:, None]) * bg
+    return RenderOutput(rgb=color, depth=dist * box_rays.z_per_t, opacity=opacity, num_samples=len(samples))
+
+
+@torch.no_grad()
+def render_image(
+    field: NGPField,
+    grid: OccupancyGrid,
+    rays: Rays,
+    width: int,
+    height: int,
+    background: Tensor,
+    march_cfg: MarchConfig,
+    box_from_frame: Tensor,
+    chunk: int = 8192,
+    level_weights: Tensor | None = None,
+) -> dict[str, Tensor]:
+    """Render a whole image in chunks.  -> rgb [H, W, 3], depth [H, W], opacity [H, W]."""
+    parts = [
+        render_rays(field, grid, rays[i : i + chunk], background, march_cfg, box_from_frame, None, level_weights)
+        for i in range(0, len(rays), chunk)
+    ]
+    return {
+        "rgb": torch.cat([p.rgb for p in parts]).reshape(height, width, 3),
+        "depth": torch.cat([p.depth for p in parts]).reshape(height, width),
+        "opacity": torch.cat([p.opacity for p in parts]).reshape(height, width),
+    }

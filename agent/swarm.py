@@ -1,0 +1,156 @@
+"""How a swarm trains: the shared schedule, the per-robot set-up, and the in-process simulation.
+
+``build_robot`` is the single place where a robot's trainer is made, used by both the daemon
+and :class:`Simulation`, so that the simulation "runs exactly the trainer code the daemon will
+run": same seeds, same held-out views, same order of operations within a round:
+
+    begin_round(k, theta_j^k)  ->  B steps  ->  publish theta_i^{k+1}
+    ->  receive theta_j^{k+1}  ->  end_round (dual update)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Callable, Mapping
+
+from torch import Tensor
+
+from agent.consensus import ConsensusConfig, disagreement
+from agent.data.views import Views
+from agent.trainer import RobotTrainer, TrainConfig
+
+
+@dataclass
+class SwarmTrainingConfig:
+    """Settings every robot of a swarm must share (they define theta^0 and the schedules)."""
+
+    rounds: int = 10
+    steps_per_round: int = 100
+    seed: int = 0
+    holdout_every: int = 10  # every k-th own view is held out for the robot's log PSNR; 0 = none
+    consensus: ConsensusConfig = field(default_factory=ConsensusConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def __post_init__(self) -> None:
+        if self.rounds < 1 or self.steps_per_round < 1:
+            raise ValueError("rounds and steps_per_round must be >= 1")
+        if self.holdout_every < 0:
+            raise ValueError("holdout_every must be >= 0")
+
+    @property
+    def total_steps(self) -> int:
+        return self.rounds * self.steps_per_round
+
+
+def robot_seed(swarm_seed: int, robot_id: int) -> int:
+    """Each robot's sampling seed: distinct per robot, reproducible from the swarm seed."""
+    return swarm_seed * 100_003 + robot_id
+
+
+def holdout_split(views: Views, every: int) -> tuple[Views, Views | None]:
+    """Own views -> (training views, held-out views): indices k-1, 2k-1, ... are held out.
+
+    The first view is never held out: in the paper's convention it defines the local frame.
+    """
+    if every <= 0 or len(views) < 2:
+        return views, None
+    held = [i for i in range(len(views)) if i % every == every - 1]
+    if not held:
+        return views, None
+    keep = [i for i in range(len(views)) if i % every != every - 1]
+    return views.subset(keep), views.subset(held)
+
+
+@dataclass
+class RobotSetup:
+    robot_id: int
+    trainer: RobotTrainer
+    holdout: Views | None  # the robot's own held-out views (local frame), for its log line
+
+
+def build_robot(
+    robot_id: int,
+    views: Views,
+    box_from_shared: Tensor,
+    cfg: SwarmTrainingConfig,
+    initial_pose: Tensor | None = None,
+    is_reference: bool = False,
+) -> RobotSetup:
+    train_views, holdout = holdout_split(views, cfg.holdout_every)
+    tcfg = dataclasses.replace(
+        cfg.train, seed=robot_seed(cfg.seed, robot_id), init_seed=cfg.seed, total_steps=cfg.total_steps
+    )
+    trainer = RobotTrainer(train_views, tcfg, box_from_shared, initial_pose, consensus=cfg.consensus)
+    if is_reference:
+        trainer.pose.freeze()
+    return RobotSetup(robot_id, trainer, holdout)
+
+
+@dataclass
+class RoundRecord:
+    round: int  # the round just completed (theta^{round+1} exists)
+    loss: dict[int, float]
+    batch_psnr: dict[int, float]
+    seconds: dict[int, float]
+    disagreement: dict[int, float]
+    poses: dict[int, Tensor]  # T_shared_from_local estimates
+
+
+class Simulation:
+    """N robots on a topology in one process, exchanging theta through memory."""
+
+    def __init__(
+        self,
+        robots: Mapping[int, Views],
+        neighbours: Mapping[int, frozenset[int] | set[int]],
+        box_from_shared: Tensor,
+        cfg: SwarmTrainingConfig,
+        initial_poses: Mapping[int, Tensor] | None = None,
+        reference_id: int | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.neighbours = {i: sorted(neighbours[i]) for i in robots}
+        self.reference_id = min(robots) if reference_id is None else reference_id
+        initial_poses = initial_poses or {}
+        self.robots = {
+            i: build_robot(i, v, box_from_shared, cfg, initial_poses.get(i), is_reference=(i == self.reference_id))
+            for i, v in sorted(robots.items())
+        }
+        self.thetas = {i: r.trainer.theta() for i, r in self.robots.items()}  # theta^0
+        self.round = 0
+
+    @property
+    def trainers(self) -> dict[int, RobotTrainer]:
+        return {i: r.trainer for i, r in self.robots.items()}
+
+    def run_round(self) -> RoundRecord:
+        k = self.round
+        stats = {}
+        for i, robot in self.robots.items():
+            robot.trainer.begin_round(k, {j: self.thetas[j] for j in self.neighbours[i]})
+            stats[i] = robot.trainer.train(self.cfg.steps_per_round)
+        new = {i: r.trainer.theta() for i, r in self.robots.items()}
+        for i, robot in self.robots.items():
+            robot.trainer.end_round({j: new[j] for j in self.neighbours[i]})
+        self.thetas = new
+        self.round += 1
+        ids = list(self.robots)
+        dis = disagreement([list(new[i].values()) for i in ids])
+        return RoundRecord(
+            round=k,
+            loss={i: s.loss for i, s in stats.items()},
+            batch_psnr={i: s.batch_psnr for i, s in stats.items()},
+            seconds={i: s.seconds for i, s in stats.items()},
+            disagreement=dict(zip(ids, dis)),
+            poses={i: r.trainer.pose.matrix().detach().clone() for i, r in self.robots.items()},
+        )
+
+    def run(self, on_round: Callable[[RoundRecord], None] | None = None) -> list[RoundRecord]:
+        history = []
+        while self.round < self.cfg.rounds:
+            rec = self.run_round()
+            history.append(rec)
+            if on_round is not None:
+                on_round(rec)
+        return history

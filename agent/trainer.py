@@ -1,0 +1,395 @@
+"""One robot's optimisation: field theta_i, relative pose T_i, depth scale/shift psi_i, C-ADMM.
+
+The same class trains the centralised baseline (all views, pose fixed, no neighbours), a robot
+alone, a robot of the in-process simulation and a robot inside the daemon: there is one
+training loop in the project. Everything random comes from the trainer's own generator, so a
+run is reproducible from its seeds whatever else runs in the process.
+
+Frames: the robot's views are in its local frame; ``T_i`` (:class:`RelativePose`) maps them
+into the shared frame g; ``box_from_shared`` maps g into the field's box [-1, 1]^3.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field as config_field
+from typing import Callable, Literal, Mapping
+
+import torch
+from torch import Tensor, nn
+
+from agent.consensus import Consensus, ConsensusConfig
+from agent.data.views import Views
+from agent.geometry import sim3_from_params, sim3_inverse, transform_c2w
+from agent.metrics import psnr, ssim
+from agent.nerf.field import FieldConfig, NGPField
+from agent.nerf.occupancy import OccupancyConfig, OccupancyGrid
+from agent.nerf.rays import image_rays, pixel_rays
+from agent.nerf.renderer import render_image, render_rays
+from agent.nerf.sampler import MarchConfig
+
+
+@dataclass
+class OptimConfig:
+    lr: float = 1e-2
+    betas: tuple[float, float] = (0.9, 0.99)
+    eps: float = 1e-15
+    warmup_steps: int = 50
+    decay_at: tuple[float, ...] = (0.6, 0.85)  # fractions of total_steps where the lr is multiplied ...
+    decay_factor: float = 0.33  # ... by this
+
+
+@dataclass
+class PoseConfig:
+    mode: Literal["fixed", "se3", "sim3"] = "fixed"
+    lr_rotation: float = 2e-3  # radians per step (Adam), about the box centre
+    lr_translation: float = 2e-3  # box units per step
+    lr_scale: float = 1e-3  # log-scale per step (sim3 only)
+    start_step: int = 0  # the pose waits this many steps for the shared field to form
+    decay_to: float = 0.1  # pose lr decays geometrically to this fraction at the end
+
+
+@dataclass
+class CoarseToFineConfig:
+    """BARF-style masking of the finer hash levels early on: widens the basin of the pose."""
+
+    enabled: bool = False
+    always_on_levels: int = 4
+    start: float = 0.0  # fraction of total_steps where the finer levels begin to appear
+    end: float = 0.5  # ... and where all of them are fully on
+
+
+@dataclass
+class DepthConfig:
+    weight: float = 0.0  # gamma; 0 disables the depth term
+    learn_affine: bool = True  # learn a per-image scale a_m and shift b_m of the prior
+    lr: float = 1e-3
+
+
+@dataclass
+class TrainConfig:
+    rays_per_step: int = 2048
+    total_steps: int = 2000  # for schedules; a swarm uses rounds * steps_per_round
+    background: Literal["random", "white", "black"] = "random"
+    seed: int = 0  # this robot's sampling seed
+    init_seed: int = 0  # the field's initial weights: the same on every robot of a swarm
+    device: str = "cpu"
+    field: FieldConfig = config_field(default_factory=FieldConfig)
+    occupancy: OccupancyConfig = config_field(default_factory=OccupancyConfig)
+    march: MarchConfig = config_field(default_factory=MarchConfig)
+    optim: OptimConfig = config_field(default_factory=OptimConfig)
+    pose: PoseConfig = config_field(default_factory=PoseConfig)
+    coarse_to_fine: CoarseToFineConfig = config_field(default_factory=CoarseToFineConfig)
+    depth: DepthConfig = config_field(default_factory=DepthConfig)
+
+
+class RelativePose(nn.Module):
+    """``T = B^-1 Exp(delta) B T0``: a correction ``delta`` applied in box coordinates.
+
+    Working in the box (centred, unit-sized) decouples rotation from translation: a rotation
+    turns the scene about its own centre instead of about the far-away origin of g, and the
+    translation is in units of the scene size, so one learning rate suits every dataset.
+    """
+
+    def __init__(self, initial: Tensor, box_from_shared: Tensor, mode: str) -> None:
+        super().__init__()
+        self.mode = mode
+        self.register_buffer("base", initial.detach().to(torch.float32).clone())  # T0 [4, 4]
+        self.register_buffer("box", box_from_shared.to(torch.float32).clone())  # B [4, 4]
+        self.register_buffer("box_inv", sim3_inverse(box_from_shared.double()).float())
+        self.phi = nn.Parameter(torch.zeros(3))
+        self.translation = nn.Parameter(torch.zeros(3))
+        self.log_scale = nn.Parameter(torch.zeros(()))
+        self.set_trainable(mode != "fixed")
+
+    def set_trainable(self, trainable: bool) -> None:
+        self.phi.requires_grad_(trainable)
+        self.translation.requires_grad_(trainable)
+        self.log_scale.requires_grad_(trainable and self.mode == "sim3")
+
+    @property
+    def trainable(self) -> bool:
+        return self.phi.requires_grad
+
+    def matrix(self) -> Tensor:
+        """T_shared_from_local: [4, 4] (differentiable in the correction)."""
+        delta = sim3_from_params(self.log_scale, self.phi, self.translation)
+        return self.box_inv @ delta @ self.box @ self.base
+
+    @torch.no_grad()
+    def freeze(self) -> None:
+        """Fold the current estimate into T0 and stop learning it (this robot became the reference).
+
+        The frozen T is the current estimate, not the identity, so the shared frame stays put.
+        """
+        self.base.copy_(self.matrix())
+        for p in (self.phi, self.translation, self.log_scale):
+            p.zero_()
+        self.set_trainable(False)
+
+    def unfreeze(self) -> None:
+        """Learn again (a robot with a lower id came back and is the reference again)."""
+        self.set_trainable(self.mode != "fixed")
+
+
+@dataclass
+class StepStats:
+    loss: float
+    rgb_loss: float
+    depth_loss: float
+    batch_psnr: float
+    samples_per_ray: float
+    seconds: float
+    steps: int
+
+
+class RobotTrainer:
+    """Trains one copy of the field on one robot's views (in its local frame)."""
+
+    def __init__(
+        self,
+        views: Views,
+        cfg: TrainConfig,
+        box_from_shared: Tensor,
+        initial_pose: Tensor | None = None,
+        consensus: ConsensusConfig | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.device = torch.device(cfg.device)
+        dev = self.device
+        self.views = views
+        self.images = views.images.to(dev)  # [M, H, W, C]
+        self.c2w_local = views.c2w.to(dev).float()  # [M, 4, 4]
+        self.intrinsics = views.intrinsics.to(dev).float()  # [M, 4]
+        self.depth_prior = None if views.depth is None else views.depth.to(dev)  # [M, H, W]
+        self.box_from_shared = box_from_shared.to(dev).float()
+        self.generator = torch.Generator(device=dev).manual_seed(cfg.seed)
+
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(cfg.init_seed)  # every robot starts from the same theta^0
+            self.field = NGPField(cfg.field).to(dev)
+        self.grid = OccupancyGrid(cfg.occupancy, dev)
+        initial = torch.eye(4) if initial_pose is None else initial_pose
+        self.pose = RelativePose(initial, box_from_shared, cfg.pose.mode).to(dev)
+        m = len(views)
+        self.depth_log_scale = nn.Parameter(torch.zeros(m, device=dev))  # log a_m
+        self.depth_shift = nn.Parameter(torch.zeros(m, device=dev))  # b_m
+        learn_affine = cfg.depth.weight > 0 and cfg.depth.learn_affine and self.depth_prior is not None
+        self.depth_log_scale.requires_grad_(learn_affine)
+        self.depth_shift.requires_grad_(learn_affine)
+
+        o = cfg.optim
+        self.theta_names = [n for n, _ in self.field.named_parameters()]
+        self.optimizer = torch.optim.Adam(
+            [
+                {"params": list(self.field.parameters()), "lr": o.lr, "name": "field"},
+                {"params": [self.pose.phi], "lr": cfg.pose.lr_rotation, "name": "rotation"},
+                {"params": [self.pose.translation], "lr": cfg.pose.lr_translation, "name": "translation"},
+                {"params": [self.pose.log_scale], "lr": cfg.pose.lr_scale, "name": "scale"},
+                {"params": [self.depth_log_scale, self.depth_shift], "lr": cfg.depth.lr, "name": "depth"},
+            ],
+            betas=o.betas,
+            eps=o.eps,
+        )
+        self.base_lrs = [g["lr"] for g in self.optimizer.param_groups]
+        self.consensus = Consensus(list(self.field.parameters()), consensus) if consensus else None
+        self.step = 0
+
+    # --- parameters exchanged with neighbours ---------------------------------------------
+    def theta(self) -> dict[str, Tensor]:
+        """A detached copy of theta_i (what is published)."""
+        return {n: p.detach().clone() for n, p in self.field.named_parameters()}
+
+    def _as_list(self, theta: Mapping[str, Tensor]) -> list[Tensor]:
+        return [theta[n].to(self.device) for n in self.theta_names]
+
+    @torch.no_grad()
+    def load_theta(self, theta: Mapping[str, Tensor]) -> None:
+        """Overwrite theta_i (a late joiner warm-starts from its neighbours)."""
+        for n, p in self.field.named_parameters():
+            p.copy_(theta[n])
+
+    def begin_round(self, round_index: int, neighbours: Mapping[int, Mapping[str, Tensor]]) -> None:
+        """Anchors of round k from theta_i^k (the current parameters) and the theta_j^k heard."""
+        if self.consensus is None:
+            return
+        own = [p.detach() for p in self.field.parameters()]
+        self.consensus.begin_round(round_index, own, {j: self._as_list(t) for j, t in neighbours.items()})
+
+    def end_round(self, neighbours: Mapping[int, Mapping[str, Tensor]]) -> None:
+        """Dual update with theta_i^{k+1} (current) and the theta_j^{k+1} heard."""
+        if self.consensus is None:
+            return
+        own = [p.detach() for p in self.field.parameters()]
+        self.consensus.dual_update(own, {j: self._as_list(t) for j, t in neighbours.items()})
+
+    # --- schedules ---------------------------------------------------------------------------
+    def _lr_factor(self, step: int) -> float:
+        o = self.cfg.optim
+        f = min(1.0, (step + 1) / max(o.warmup_steps, 1))
+        for frac in o.decay_at:
+            if step >= frac * self.cfg.total_steps:
+                f *= o.decay_factor
+        return f
+
+    def _pose_lr_factor(self, step: int) -> float:
+        p = self.cfg.pose
+        if step < p.start_step:
+            return 0.0
+        span = max(self.cfg.total_steps - p.start_step, 1)
+        return p.decay_to ** ((step - p.start_step) / span)
+
+    def level_weights(self, step: int | None = None) -> Tensor | None:
+        c = self.cfg.coarse_to_fine
+        if not c.enabled:
+            return None
+        step = self.step if step is None else step
+        levels = self.cfg.field.grid.num_levels
+        span = max((c.end - c.start) * self.cfg.total_steps, 1.0)
+        progress = min(max((step - c.start * self.cfg.total_steps) / span, 0.0), 1.0)
+        alpha = progress * (levels - c.always_on_levels)
+        k = torch.arange(levels, device=self.device, dtype=torch.float32) - c.always_on_levels
+        w = (1 - torch.cos(math.pi * (alpha - k).clamp(0, 1))) / 2
+        w[: c.always_on_levels] = 1.0
+        return w
+
+    # --- training ----------------------------------------------------------------------------
+    def _background(self, n: int) -> Tensor:
+        kind = self.cfg.background
+        if kind == "random" and self.images.shape[-1] == 4:
+            return torch.rand(n, 3, generator=self.generator, device=self.device)
+        value = 0.0 if kind == "black" else 1.0
+        return torch.full((n, 3), value, device=self.device)
+
+    def cameras_shared(self) -> Tensor:
+        """The robot's cameras in the shared frame g.  -> [M, 4, 4] (differentiable in T)."""
+        return transform_c2w(self.pose.matrix(), self.c2w_local)
+
+    def train_step(self) -> dict[str, float]:
+        cfg = self.cfg
+        step = self.step
+        lw = self.level_weights(step)
+        self.grid.maybe_update(step, lambda x: self.field.density(x, lw)[0], self.generator)
+        for group, base in zip(self.optimizer.param_groups, self.base_lrs):
+            pose_group = group["name"] in ("rotation", "translation", "scale")
+            group["lr"] = base * (self._pose_lr_factor(step) if pose_group else self._lr_factor(step))
+
+        m, h, w, _ = self.images.shape
+        n = cfg.rays_per_step
+        gen = self.generator
+        img = torch.randint(0, m, (n,), generator=gen, device=self.device)
+        px = torch.randint(0, h * w, (n,), generator=gen, device=self.device)
+        row, col = px // w, px % w
+        c2w = self.cameras_shared()[img]  # [n, 4, 4]
+        rays = pixel_rays(c2w, self.intrinsics[img], col.float() + 0.5, row.float() + 0.5)
+        pixels = self.images[img, row, col]  # [n, C]
+        bg = self._background(n)
+        if pixels.shape[-1] == 4:
+            target = pixels[:, :3] * pixels[:, 3:] + (1 - pixels[:, 3:]) * bg
+        else:
+            target = pixels
+        jitter = torch.rand(n, generator=gen, device=self.device)
+        out = render_rays(self.field, self.grid, rays, bg, cfg.march, self.box_from_shared, jitter, lw)
+        rgb_loss = ((out.rgb - target) ** 2).mean()
+        loss = rgb_loss
+        depth_loss = torch.zeros((), device=self.device)
+        if cfg.depth.weight > 0 and self.depth_prior is not None:
+            prior = self.depth_prior[img, row, col]  # [n] local z-depth, 0 = none
+            has = prior > 0
+            if bool(has.any()):
+                scale = self.pose.matrix()[:3, :3].det().abs().pow(1 / 3)  # s_i: local -> shared units
+                rendered_local = out.depth / scale
+                a = torch.exp(self.depth_log_scale[img])
+                target_depth = a * prior + self.depth_shift[img]
+                depth_loss = (rendered_local - target_depth).abs()[has].mean()
+                loss = loss + cfg.depth.weight * depth_loss
+
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.consensus is not None:
+            self.consensus.add_penalty_grad(list(self.field.parameters()))
+        self.optimizer.step()
+        self.step += 1
+        return {
+            "loss": loss.item(),
+            "rgb_loss": rgb_loss.item(),
+            "depth_loss": depth_loss.item(),
+            "samples": out.num_samples / n,
+        }
+
+    def train(self, steps: int, on_step: Callable[[int], None] | None = None) -> StepStats:
+        """Run ``steps`` optimiser steps; ``on_step`` is called after each (progress bars)."""
+        t0 = time.perf_counter()
+        sums = {"loss": 0.0, "rgb_loss": 0.0, "depth_loss": 0.0, "samples": 0.0}
+        for i in range(steps):
+            s = self.train_step()
+            for k in sums:
+                sums[k] += s[k]
+            if on_step is not None:
+                on_step(i + 1)
+        k = max(steps, 1)
+        mean_rgb = sums["rgb_loss"] / k
+        return StepStats(
+            loss=sums["loss"] / k,
+            rgb_loss=mean_rgb,
+            depth_loss=sums["depth_loss"] / k,
+            batch_psnr=-10 * math.log10(max(mean_rgb, 1e-12)),
+            samples_per_ray=sums["samples"] / k,
+            seconds=time.perf_counter() - t0,
+            steps=steps,
+        )
+
+    # --- rendering and evaluation -----------------------------------------------------------
+    @torch.no_grad()
+    def render(self, c2w_shared: Tensor, intrinsics: Tensor, width: int, height: int,
+               background: float = 1.0) -> dict[str, Tensor]:
+        """Render a view given in the shared frame.  c2w_shared: [4, 4] -> rgb [H, W, 3], depth, opacity."""
+        rays = image_rays(c2w_shared.to(self.device).float(), intrinsics.to(self.device).float(), width, height)
+        bg = torch.full((3,), background, device=self.device)
+        return render_image(self.field, self.grid, rays, width, height, bg, self.cfg.march, self.box_from_shared,
+                            level_weights=self.level_weights())
+
+    @torch.no_grad()
+    def evaluate(self, views: Views, frame: Literal["local", "shared"] = "local", background: float = 1.0,
+                 with_ssim: bool = True) -> dict[str, list[float]]:
+        """PSNR/SSIM on views given in this robot's local frame (via T_i) or already in frame g."""
+        c2w = views.c2w.to(self.device).float()
+        if frame == "local":
+            c2w = transform_c2w(self.pose.matrix(), c2w)
+        gt = views.rgb(background).to(self.device)
+        out: dict[str, list[float]] = {"psnr": [], "ssim": []}
+        for i in range(len(views)):
+            pred = self.render(c2w[i], views.intrinsics[i], views.width, views.height, background)["rgb"]
+            out["psnr"].append(psnr(pred, gt[i]))
+            if with_ssim:
+                out["ssim"].append(ssim(pred, gt[i]))
+        return out
+
+    # --- checkpoints ---------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {
+            "step": self.step,
+            "field": self.field.state_dict(),
+            "grid": self.grid.state_dict(),
+            "pose": self.pose.state_dict(),
+            "pose_trainable": self.pose.trainable,
+            "depth": {"log_scale": self.depth_log_scale.detach().clone(), "shift": self.depth_shift.detach().clone()},
+            "optimizer": self.optimizer.state_dict(),
+            "consensus": None if self.consensus is None else self.consensus.state_dict(),
+            "generator": self.generator.get_state(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step = int(state["step"])
+        self.field.load_state_dict(state["field"])
+        self.grid.load_state_dict(state["grid"])
+        self.pose.load_state_dict(state["pose"])
+        self.pose.set_trainable(bool(state["pose_trainable"]))
+        with torch.no_grad():
+            self.depth_log_scale.copy_(state["depth"]["log_scale"])
+            self.depth_shift.copy_(state["depth"]["shift"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        if self.consensus is not None and state["consensus"] is not None:
+            self.consensus.load_state_dict(state["consensus"])
+        self.generator.set_state(state["generator"])

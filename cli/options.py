@@ -1,0 +1,43 @@
+"""Pieces shared by several commands: help texts, config loading, threads, progress bars."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+from cli.config import ConfigError, apply_overrides, from_dict, load_toml
+
+DATA_HELP = "Dataset: a folder (transforms.json, COLMAP sparse/0, images), a json file, or procedural[:views=100,width=64,seed=0]."
+SET_HELP = "Override a setting, e.g. --set optim.lr=5e-3 (repeatable)."
+
+
+def set_threads(threads: int) -> None:
+    import torch
+
+    if threads < 1:
+        raise ConfigError("--threads must be >= 1")
+    torch.set_num_threads(threads)
+
+
+def load_train_config(path: Path | None, overrides: list[str], total_steps: int | None = None):
+    """TrainConfig from the [train] table of a TOML file (if any), then --set overrides."""
+    from agent.trainer import TrainConfig
+
+    data = load_toml(path).get("train", {}) if path else {}
+    cfg = from_dict(TrainConfig, data, "train")
+    if total_steps is not None:
+        cfg = dataclasses.replace(cfg, total_steps=total_steps)
+    return apply_overrides(cfg, overrides)
+
+
+def progress_bar() -> Progress:
+    return Progress(
+        TextColumn("[progress.description]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        transient=False,
+    )
