@@ -43,7 +43,8 @@ class HashGridConfig:
         if self.num_levels == 1:
             return [self.base_resolution]
         growth = math.exp((math.log(self.max_resolution) - math.log(self.base_resolution)) / (self.num_levels - 1))
-        return [int(math.floor(self.base_resolution * growth**level)) for level in range(self.num_levels)]
+        # + 1e-6: exp/log round-off must not floor the finest level to max_resolution - 1 (1023 for 1024)
+        return [int(math.floor(self.base_resolution * growth**level + 1e-6)) for level in range(self.num_levels)]
 
 
 class _Gather(torch.autograd.Function):
