@@ -85,7 +85,12 @@ class OccupancyGrid:
         seen = self.density >= 0
         mean = self.density[seen].mean() if seen.any() else torch.tensor(0.0)
         threshold = min(float(mean), self.cfg.density_threshold)
-        self.occupied = self.density > threshold
+        occupied = self.density > threshold
+        if not bool(occupied.any()):
+            # A uniform field has no cell above its own mean (float round-off decides): keep its
+            # densest cells rather than prune everything, which no gradient could ever undo.
+            occupied = self.density >= self.density.max()
+        self.occupied = occupied
 
     # --- persistence (checkpoints) -------------------------------------------------------
     def state_dict(self) -> dict[str, Tensor]:

@@ -1,0 +1,95 @@
+"""The occupancy grid: which cells of a known density field it keeps, and its schedule."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from agent.nerf.occupancy import OccupancyConfig, OccupancyGrid
+
+R = 16
+
+
+def cell_bounds(r: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lower and upper corners of every cell in the flat order of OccupancyGrid.  -> ([C, 3], [C, 3])."""
+    ii = torch.arange(r)
+    ijk = torch.stack(torch.meshgrid(ii, ii, ii, indexing="ij"), -1).reshape(-1, 3).double()
+    return ijk * (2 / r) - 1, (ijk + 1) * (2 / r) - 1
+
+
+def sphere_density(x: torch.Tensor) -> torch.Tensor:
+    """10 inside the sphere of radius 0.5 at (0.2, -0.1, 0), 0 outside.  [N, 3] -> [N]."""
+    inside = (x - torch.tensor([0.2, -0.1, 0.0])).norm(dim=-1) < 0.5
+    return inside.float() * 10
+
+
+def test_cells_of_a_known_density_are_marked_occupied_or_empty():
+    grid = OccupancyGrid(OccupancyConfig(resolution=R))
+    grid.update(0, sphere_density, torch.Generator().manual_seed(0))
+    lo, hi = cell_bounds(R)
+    centre = torch.tensor([0.2, -0.1, 0.0], dtype=torch.float64)
+    nearest = torch.maximum(torch.minimum(centre, hi), lo)  # closest point of each cell to the centre
+    corners = torch.stack([torch.where(torch.tensor([(c >> a) & 1 for a in range(3)]).bool(), hi, lo)
+                           for c in range(8)], 1)  # [C, 8, 3]
+    fully_inside = ((corners - centre).norm(dim=-1) < 0.5).all(-1)
+    fully_outside = (nearest - centre).norm(dim=-1) >= 0.5
+    assert int(fully_inside.sum()) > 20 and int(fully_outside.sum()) > R**3 // 2
+    assert bool(grid.occupied[fully_inside].all())
+    assert not bool(grid.occupied[fully_outside].any())
+    pts = torch.tensor([[0.2, -0.1, 0.0], [0.9, 0.9, 0.9], [-0.9, 0.0, 0.0]])
+    assert grid.is_occupied(pts).tolist() == [True, False, False]
+
+
+def test_threshold_is_the_smaller_of_the_mean_and_the_configured_density():
+    # left half 5, right half 0.5: mean 2.75 > threshold 1 -> only the left half is kept
+    grid = OccupancyGrid(OccupancyConfig(resolution=R, density_threshold=1.0))
+    grid.update(0, lambda x: torch.where(x[:, 0] < 0, 5.0, 0.5))
+    lo, _ = cell_bounds(R)
+    assert torch.equal(grid.occupied, lo[:, 0] < 0)
+    # a faint field, everywhere below the threshold: the mean decides instead (0.3 > mean ~0.21 > 0.2)
+    grid = OccupancyGrid(OccupancyConfig(resolution=R, density_threshold=1.0))
+    grid.update(0, lambda x: torch.where(x[:, 2] > 0.5, 0.3, 0.2))
+    assert torch.equal(grid.occupied, lo[:, 2] >= 0.5)
+
+
+@pytest.mark.parametrize("value", [0.0, 1e-3, 0.01, 0.05, 0.3])
+def test_a_uniformly_faint_field_is_never_pruned_to_nothing(value):
+    grid = OccupancyGrid(OccupancyConfig(resolution=R))
+    grid.update(0, lambda x: torch.full((x.shape[0],), value))
+    assert grid.occupied_fraction > 0
+    assert bool(grid.is_occupied(torch.zeros(1, 3)))  # the constant field keeps its (equal) densest cells: all
+
+
+def test_running_max_decays_and_empties_cells_whose_density_vanished():
+    cfg = OccupancyConfig(resolution=8, decay=0.5, update_every=4, warmup_steps=10**6)  # full updates throughout
+    grid = OccupancyGrid(cfg)
+    lo, _ = cell_bounds(8)
+    left = lo[:, 0] < 0
+    grid.update(0, lambda x: torch.where(x[:, 0] < 0, 8.0, 0.0) + torch.where(x[:, 1] < 0, 4.0, 0.0))
+    assert torch.equal(grid.occupied, left | (lo[:, 1] < 0))
+    for step in range(1, 4):  # the y < 0 density is gone: 4 * 0.5^step
+        grid.update(step, lambda x: torch.where(x[:, 0] < 0, 8.0, 0.0))
+    assert torch.allclose(grid.density[~left & (lo[:, 1] < 0)], torch.tensor(0.5))
+    assert torch.equal(grid.occupied, left)  # 0.5 < threshold min(mean, 1) = 1
+    assert not grid.maybe_update(5, sphere_density) and grid.maybe_update(8, sphere_density)
+
+
+def test_after_warmup_an_update_visits_a_random_quarter_plus_a_quarter_of_the_occupied_cells():
+    cfg = OccupancyConfig(resolution=R, warmup_steps=16, update_every=16)
+    grid = OccupancyGrid(cfg)
+    seen: list[torch.Tensor] = []
+
+    def recording(x: torch.Tensor) -> torch.Tensor:
+        seen.append(x)
+        return sphere_density(x)
+
+    grid.update(0, recording)
+    assert sum(len(x) for x in seen) == R**3  # warm-up: every cell
+    occupied_before = grid.occupied.clone()
+    seen.clear()
+    grid.update(16, recording, torch.Generator().manual_seed(0))
+    visited = grid.cell_index(torch.cat(seen))
+    assert len(visited) == R**3 // 4 + int(occupied_before.sum()) // 4
+    # the occupied cells are visited about twice as often as a uniform draw would visit them
+    share = float(occupied_before[visited].float().mean())
+    assert share > 1.6 * float(occupied_before.float().mean())
