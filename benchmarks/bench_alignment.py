@@ -95,6 +95,7 @@ def main() -> None:
     ap.add_argument("--sfm", action="store_true", help="images-only robots with their own SfM")
     ap.add_argument("--cache", type=Path, default=ROOT / "runs/bench_alignment")
     ap.add_argument("--keyframes", type=int, default=AlignConfig.num_keyframes)
+    ap.add_argument("--min-inliers", type=int, default=AlignConfig.min_inliers)
     args = ap.parse_args()
     torch.set_num_threads(2)
     cv2.setNumThreads(2)
@@ -112,7 +113,7 @@ def main() -> None:
     centres = views.c2w[:, :3, 3].double()
     radius = float(centres.norm(dim=1).median())
     print(f"scene radius (camera sphere) {radius:.3f}; offsets: rotation U[0,180] deg, translation U[0,{3 * radius:.1f}]")
-    cfg = AlignConfig(num_keyframes=args.keyframes, with_scale=args.scale or args.sfm, seed=args.seed)
+    cfg = AlignConfig(num_keyframes=args.keyframes, min_inliers=args.min_inliers, with_scale=args.scale or args.sfm, seed=args.seed)
 
     views = views.subset([i for i in range(len(views)) if i % 8 != 0])  # held out for evaluation
     g = torch.Generator().manual_seed(args.seed)
