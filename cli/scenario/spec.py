@@ -1,0 +1,420 @@
+"""The ``scenario.toml`` schema as typed dataclasses.
+
+A scenario file is read with :func:`cli.config.from_dict`, so an unknown or misspelt key is an
+error that names it. Example (every table but ``[scenario]`` is optional)::
+
+    [scenario]
+    name = "quickstart"
+    dataset = "procedural:views=60,width=48"   # or a path, e.g. "../shared/data/nerf_synthetic/lego"
+    width = 48                                 # downscale images to this width
+    robots = 3                                 # ids 1..N; robot 1 is the reference
+
+    [split]                                    # agent.data.split.SplitConfig, see there
+    overlap = 0.1
+    frame = "offset"
+
+    [topology]
+    kind = "ring"                              # full | ring | star | line | edges (+ edges = [[1, 2]], hub = 1)
+
+    [training]                                 # agent.swarm.SwarmTrainingConfig: rounds, steps_per_round,
+    rounds = 8                                 # [training.consensus] rho0 ..., [training.train.*]
+    [daemon]                                   # agent.daemon.DaemonConfig (round_timeout_s, ...)
+    [network]                                  # protocol.transport.TransportConfig (lease_ms, ...)
+
+    [faults]                                   # rounds count from 0
+    kill = [{ robot = 3, round = 2 }]          # SIGKILL robot 3 when the swarm reaches round 2
+    restart = [{ robot = 3, round = 4 }]       # start it again on the same run dir (it resumes)
+    cut = [{ link = [1, 2], from_round = 2, to_round = 4 }]                  # netns only
+    netem = [{ link = [2, 3], from_round = 1, delay_ms = 100, loss = 0.1 }]  # netns only
+
+    [baseline]
+    enabled = true                             # also train the centralised model and each robot alone
+    [report]
+    eval_every = 1                             # evaluate rounds/<k>.pt every k-th round
+    [run]
+    mode = "local"                             # or netns (root); timeout_s = 600 ...
+
+"Round k" in the timeline means: as soon as any robot has started round k (finished k - 1),
+rounds counting from 0. ``to_round`` is when the fault ends (the link is healed or made clean
+again); without it the fault lasts until the end.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from cli.config import ConfigError, from_dict, load_toml
+
+__all__ = [
+    "SplitSpec",
+    "TopologySpec",
+    "KillFault",
+    "RestartFault",
+    "CutFault",
+    "NetemFault",
+    "FaultsSpec",
+    "BaselineSpec",
+    "ReportSpec",
+    "RunSpec",
+    "ScenarioSpec",
+    "load_scenario",
+    "find_scenario",
+    "list_scenarios",
+    "repo_root",
+    "scenarios_dir",
+    "resolve_dataset",
+]
+
+Mode = Literal["local", "netns"]
+
+
+def repo_root() -> Path:
+    """The checkout this package runs from (scenario datasets are relative to it)."""
+    return Path(__file__).resolve().parents[2]
+
+
+def scenarios_dir() -> Path:
+    return repo_root() / "scenarios"
+
+
+@dataclass
+class SplitSpec:
+    """How the dataset is cut into robots; the fields of ``SplitConfig`` a scenario may set."""
+
+    overlap: float = 0.1
+    frame: str = "offset"  # first_camera | offset | world | random
+    depth_prior: str = "none"  # none | true | scaled
+    max_scale: float = 1.0  # frame = random: scale log-uniform in [1/x, x]
+    holdout_every: int = 8  # held-out views 0, k, 2k, ... (the report's evaluation set)
+    offset_rotation_deg: tuple[float, float, float] = (30.0, 30.0, 30.0)
+    offset_translation: tuple[float, float, float] = (3.0, 3.0, 3.0)
+    seed: int = 0
+
+    def to_split_config(self, robots: int):
+        from agent.data.split import SplitConfig
+
+        return SplitConfig(
+            robots=robots,
+            overlap=self.overlap,
+            holdout_every=self.holdout_every,
+            frame=self.frame,  # type: ignore[arg-type]  # validated by SplitConfig
+            depth_prior=self.depth_prior,  # type: ignore[arg-type]
+            random_max_scale=self.max_scale,
+            offset_rotation_deg=self.offset_rotation_deg,
+            offset_translation=self.offset_translation,
+            seed=self.seed,
+        )
+
+
+@dataclass
+class TopologySpec:
+    kind: str = "full"  # full | ring | star | line | edges
+    edges: list[tuple[int, int]] | None = None
+    hub: int | None = None
+
+
+@dataclass
+class KillFault:
+    """SIGKILL ``robot`` when the swarm reaches ``round`` (no goodbye: a crash or power loss)."""
+
+    robot: int
+    round: int
+
+
+@dataclass
+class RestartFault:
+    """Start ``robot`` again on its run dir when the swarm reaches ``round`` (it resumes)."""
+
+    robot: int
+    round: int
+
+
+@dataclass
+class CutFault:
+    """Link a-b down (``ip link set down`` on both ends) from ``from_round`` until ``to_round``."""
+
+    link: tuple[int, int]
+    from_round: int
+    to_round: int | None = None
+
+
+@dataclass
+class NetemFault:
+    """Delay/jitter/loss on link a-b (both directions) from ``from_round`` until ``to_round``.
+
+    ``delay_ms`` is one-way (a round trip gets twice), ``loss`` a fraction in [0, 1) per packet.
+    """
+
+    link: tuple[int, int]
+    from_round: int
+    to_round: int | None = None
+    delay_ms: float = 0.0
+    jitter_ms: float = 0.0
+    loss: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.delay_ms < 0 or self.jitter_ms < 0:
+            raise ValueError(f"netem on link {list(self.link)}: delay_ms and jitter_ms must be >= 0")
+        if self.jitter_ms > self.delay_ms:
+            raise ValueError(f"netem on link {list(self.link)}: jitter_ms ({self.jitter_ms}) must not exceed delay_ms")
+        if not 0.0 <= self.loss < 1.0:
+            raise ValueError(f"netem on link {list(self.link)}: loss is a fraction in [0, 1), got {self.loss}")
+        if self.delay_ms == 0 and self.loss == 0:
+            raise ValueError(f"netem on link {list(self.link)}: set delay_ms and/or loss")
+
+
+@dataclass
+class FaultsSpec:
+    kill: list[KillFault] = field(default_factory=list)
+    restart: list[RestartFault] = field(default_factory=list)
+    cut: list[CutFault] = field(default_factory=list)
+    netem: list[NetemFault] = field(default_factory=list)
+
+    @property
+    def needs_netns(self) -> bool:
+        return bool(self.cut or self.netem)
+
+    @property
+    def empty(self) -> bool:
+        return not (self.kill or self.restart or self.cut or self.netem)
+
+
+@dataclass
+class BaselineSpec:
+    """The report's points of comparison, trained in-process after the swarm has finished."""
+
+    enabled: bool = False  # the centralised model on every robot's views, true poses
+    alone: bool = True  # with enabled: also each robot alone on its own views (true pose, no consensus)
+    steps: int | None = None  # default: the swarm's total_steps (rounds * steps_per_round)
+
+
+@dataclass
+class ReportSpec:
+    eval_every: int = 1  # evaluate the snapshot of every k-th round (and always the last)
+    ssim: bool = True
+    render_views: int = 3  # held-out views on the render sheet
+    threads: int = 2  # torch threads for the evaluation
+
+    def __post_init__(self) -> None:
+        if self.eval_every < 1 or self.render_views < 0 or self.threads < 1:
+            raise ValueError("report: eval_every >= 1, render_views >= 0, threads >= 1")
+
+
+@dataclass
+class RunSpec:
+    mode: Mode = "local"  # local: loopback processes; netns: one network namespace per robot (root)
+    timeout_s: float = 900.0  # the whole swarm run, start to done
+    threads: int = 1  # torch threads of each robot (the daemon's daemon.threads unless [daemon] sets it)
+    impair: Literal["auto", "netem", "relay"] = "auto"  # how [[faults.netem]] is done, see cli.scenario.netns
+
+    def __post_init__(self) -> None:
+        if self.timeout_s <= 0 or self.threads < 1:
+            raise ValueError("run: timeout_s > 0 and threads >= 1")
+
+
+@dataclass
+class ScenarioSpec:
+    name: str
+    dataset: str = "procedural"
+    width: int | None = None
+    robots: int = 3
+    description: str = ""
+    split: SplitSpec = field(default_factory=SplitSpec)
+    topology: TopologySpec = field(default_factory=TopologySpec)
+    training: Any = None  # agent.swarm.SwarmTrainingConfig (filled in __post_init__)
+    daemon: dict[str, Any] = field(default_factory=dict)  # agent.daemon.DaemonConfig fields
+    network: dict[str, Any] = field(default_factory=dict)  # protocol.transport.TransportConfig fields
+    faults: FaultsSpec = field(default_factory=FaultsSpec)
+    baseline: BaselineSpec = field(default_factory=BaselineSpec)
+    report: ReportSpec = field(default_factory=ReportSpec)
+    run: RunSpec = field(default_factory=RunSpec)
+    path: Path | None = None  # the scenario.toml it came from (not a TOML key)
+
+    def __post_init__(self) -> None:
+        from agent.swarm import SwarmTrainingConfig
+
+        if self.training is None:
+            self.training = SwarmTrainingConfig()
+        elif isinstance(self.training, dict):
+            self.training = from_dict(SwarmTrainingConfig, self.training, "training")
+        if self.robots < 1:
+            raise ValueError(f"robots must be >= 1, got {self.robots}")
+        if self.width is not None and self.width < 8:
+            raise ValueError(f"width must be >= 8, got {self.width}")
+        self.split.to_split_config(self.robots)  # validates frame, overlap ... (DataError is a ValueError)
+        self.topology_obj()  # validates kind/edges/hub against the ids
+        self._check_network()
+        self._check_daemon()
+        self._check_faults()
+
+    # --- derived ------------------------------------------------------------------------------
+    @property
+    def ids(self) -> list[int]:
+        return list(range(1, self.robots + 1))
+
+    @property
+    def reference_id(self) -> int:
+        return min(self.ids)
+
+    @property
+    def rounds(self) -> int:
+        return int(self.training.rounds)
+
+    def topology_obj(self):
+        from protocol.membership import Topology
+
+        t = self.topology
+        edges = [list(e) for e in t.edges] if t.edges is not None else None
+        return Topology.from_spec(t.kind, self.ids, edges, t.hub)
+
+    @property
+    def links(self) -> list[tuple[int, int]]:
+        return list(self.topology_obj().edges)
+
+    # --- validation -------------------------------------------------------------------------------
+    def _check_network(self) -> None:
+        from protocol.transport import TransportConfig
+
+        for key in ("listen", "connect", "endpoints"):
+            if key in self.network:
+                raise ValueError(f"network.{key}: set by the scenario runner (one endpoint per robot and link); remove it")
+        from_dict(TransportConfig, dict(self.network), "network").validate()
+
+    def _check_daemon(self) -> None:
+        try:
+            from agent.daemon import DaemonConfig  # type: ignore[attr-defined]
+        except ImportError:  # the daemon validates its own table when it starts
+            return
+        from_dict(DaemonConfig, dict(self.daemon), "daemon")
+
+    def _check_faults(self) -> None:
+        ids, rounds = set(self.ids), self.rounds
+        links = set(self.links)
+
+        def link_of(link: tuple[int, int], what: str) -> tuple[int, int]:
+            a, b = link
+            for r in (a, b):
+                if r not in ids:
+                    raise ValueError(f"{what}: robot {r} is not one of the robots {sorted(ids)}")
+            key = (min(a, b), max(a, b))
+            if key not in links:
+                raise ValueError(f"{what}: link {a}-{b} is not in the {self.topology.kind} topology (links: "
+                                 f"{', '.join(f'{x}-{y}' for x, y in sorted(links))})")
+            return key
+
+        def window(frm: int, to: int | None, what: str) -> None:
+            if not 0 <= frm < rounds:
+                raise ValueError(f"{what}: from_round {frm} is outside the run's rounds 0..{rounds - 1}")
+            if to is not None and not frm < to <= rounds:
+                raise ValueError(f"{what}: to_round {to} must be after from_round {frm} and <= rounds ({rounds})")
+
+        for f in self.faults.kill + self.faults.restart:
+            kind = "kill" if isinstance(f, KillFault) else "restart"
+            if f.robot not in ids:
+                raise ValueError(f"faults.{kind}: robot {f.robot} is not one of the robots {sorted(ids)}")
+            if not 0 <= f.round < rounds:
+                raise ValueError(f"faults.{kind}: round {f.round} of robot {f.robot} is outside 0..{rounds - 1}")
+        for r in ids:  # kills and restarts of one robot must alternate, starting with a kill
+            events = sorted([(f.round, 1, "kill") for f in self.faults.kill if f.robot == r]
+                            + [(f.round, 0, "restart") for f in self.faults.restart if f.robot == r])
+            alive = True
+            for rnd, _, kind in events:
+                if (kind == "kill") != alive:
+                    raise ValueError(f"faults: robot {r} gets a {kind} at round {rnd} while it is "
+                                     f"{'alive' if alive else 'already dead'}; kills and restarts must alternate")
+                alive = kind == "restart"
+        for f in self.faults.cut:
+            link_of(f.link, "faults.cut")
+            window(f.from_round, f.to_round, f"faults.cut {f.link[0]}-{f.link[1]}")
+        for f in self.faults.netem:
+            link_of(f.link, "faults.netem")
+            window(f.from_round, f.to_round, f"faults.netem {f.link[0]}-{f.link[1]}")
+        for kind, items in (("cut", self.faults.cut), ("netem", self.faults.netem)):
+            by_link: dict[tuple[int, int], list] = {}
+            for f in items:
+                by_link.setdefault((min(f.link), max(f.link)), []).append(f)
+            for key, fs in by_link.items():
+                fs.sort(key=lambda f: f.from_round)
+                for x, y in zip(fs, fs[1:]):
+                    if x.to_round is None or x.to_round > y.from_round:
+                        raise ValueError(f"faults.{kind}: two windows on link {key[0]}-{key[1]} overlap")
+
+    def check_mode(self, mode: str) -> None:
+        """Link faults need real links: a clear error instead of a run that silently ignores them."""
+        if mode not in ("local", "netns"):
+            raise ConfigError(f"mode must be local or netns, got {mode!r}")
+        if mode == "local" and self.faults.needs_netns:
+            kinds = [k for k in ("cut", "netem") if getattr(self.faults, k)]
+            raise ConfigError(f"scenario {self.name!r} has link faults ({', '.join(kinds)}): they need --mode netns (as root)")
+
+    def resolved_dataset(self) -> str:
+        return resolve_dataset(self.dataset, self.path.parent if self.path else None)
+
+    def needs_files(self) -> bool:
+        return not self.dataset.startswith("procedural")
+
+
+def resolve_dataset(dataset: str, scenario_dir: Path | None = None) -> str:
+    """``procedural[:...]`` as is; a relative path against the repo, then the scenario folder, then cwd.
+
+    Raises FileNotFoundError naming every place looked at.
+    """
+    if dataset == "procedural" or dataset.startswith("procedural:"):
+        return dataset
+    p = Path(dataset).expanduser()
+    candidates = [p] if p.is_absolute() else [repo_root() / p] + ([scenario_dir / p] if scenario_dir else []) + [Path.cwd() / p]
+    for c in candidates:
+        if c.exists():
+            return str(c.resolve())
+    raise FileNotFoundError(f"dataset {dataset!r} not found (looked at {', '.join(str(c) for c in candidates)})")
+
+
+def load_scenario(path: str | Path) -> ScenarioSpec:
+    """Read and validate one ``scenario.toml`` (a file, or a folder holding one)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "scenario.toml"
+    data = load_toml(path)
+    top = data.pop("scenario", None)
+    if not isinstance(top, dict):
+        raise ConfigError(f"{path}: needs a [scenario] table with at least name and dataset")
+    overlap = sorted(set(top) & set(data))
+    if overlap:
+        raise ConfigError(f"{path}: {overlap} given both in [scenario] and as a table")
+    try:
+        spec = from_dict(ScenarioSpec, {**top, **data})
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None
+    spec.path = path.resolve()
+    return spec
+
+
+def list_scenarios(root: Path | None = None) -> list[Path]:
+    root = root or scenarios_dir()
+    return sorted(p.parent for p in root.glob("*/scenario.toml"))
+
+
+def find_scenario(name_or_path: str) -> Path:
+    """A scenario by name (a folder of ``scenarios/``) or by path (folder or toml file)."""
+    p = Path(name_or_path)
+    if p.suffix == ".toml" and p.is_file():
+        return p
+    if (p / "scenario.toml").is_file():
+        return p / "scenario.toml"
+    q = scenarios_dir() / name_or_path / "scenario.toml"
+    if q.is_file():
+        return q
+    known = ", ".join(d.name for d in list_scenarios()) or "none"
+    raise FileNotFoundError(f"no scenario {name_or_path!r} (neither a path nor a folder of {scenarios_dir()}; known: {known})")
+
+
+def spec_to_dict(spec: ScenarioSpec) -> dict[str, Any]:
+    """The spec as plain data (for report.json)."""
+    from cli.config import to_dict
+
+    d = {f.name: to_dict(getattr(spec, f.name)) for f in dataclasses.fields(spec) if f.name != "path"}
+    d["path"] = str(spec.path) if spec.path else None
+    return d
