@@ -277,16 +277,15 @@ class NetnsLab:
     def endpoints(self, robot: int, port: int = ZENOH_PORT) -> tuple[list[str], list[str]]:
         """(listen, connect) Zenoh endpoints of ``robot``: its link addresses, its neighbours' ones.
 
-        Each pair of neighbours connects once, from the higher id to the lower (both sides
-        connecting would open two sessions; Zenoh keeps one, but why make it race).
+        Both ends of a link connect to each other (as with ``[network.endpoints]``: a robot
+        connects to every neighbour), so whichever restarts, the other side reaches it again.
         """
         listen, connect = [], []
         for l in sorted(self.links.values(), key=lambda l: l.index):
             if robot not in (l.a, l.b):
                 continue
             listen.append(f"tcp/{l.addr(robot)}:{port}")
-            if robot == l.b:
-                connect.append(f"tcp/{l.addr(l.a)}:{port}")
+            connect.append(f"tcp/{l.addr(l.other(robot))}:{port}")
         return listen, connect
 
     def exec_argv(self, robot: int, argv: list[str]) -> list[str]:

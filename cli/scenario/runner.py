@@ -1,0 +1,414 @@
+"""Run a scenario: split the data, start one real ``dinerf-agent up`` per robot, apply the fault
+timeline, wait for the swarm to finish, and stop everything (and every namespace) it started.
+
+The runner only orchestrates. It knows the swarm's progress by following each robot's
+``telemetry.jsonl`` (one line per completed round; its ``round`` is the number of rounds the
+robot has completed, i.e. theta^round exists), and "the swarm is at round k" (counting from 0)
+means some robot has completed k rounds. Faults fire then:
+
+- ``kill``: SIGKILL (no goodbye, like a crash or a power cut); the robot's run dir stays;
+- ``restart``: the same ``up`` command again on the same run dir (the daemon resumes);
+- ``cut`` / ``netem``: :class:`cli.scenario.netns.NetnsLab` on the link, undone at ``to_round``.
+
+The run ends when every robot that should be alive at the end has exited 0 (``done.json``), or
+at ``run.timeout_s``, or at the first robot that fails on its own. Whatever happens (Ctrl-C,
+SIGTERM, an exception), every process started is stopped and every namespace removed.
+
+Output folder::
+
+    data/                the split (robot<id>/, eval/, truth.json, scene.json ...)
+    swarm.toml           what every robot was given
+    robots/<id>/         each robot's run dir (telemetry.jsonl, checkpoint.pt, rounds/<k>.pt, done.json)
+    logs/robot<id>.log   each robot's stdout+stderr (appended over restarts)
+    run.json             timeline: starts, faults applied (wall time, swarm round), exits, outcome
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from cli.config import to_dict
+from cli.scenario.spec import ScenarioSpec, spec_to_dict
+from cli.scenario.tomlout import dumps
+
+__all__ = ["ScenarioRunner", "RunOutcome", "RobotProcess", "prepare_split", "free_ports", "UpCommand"]
+
+# argv of one robot's daemon, without the namespace prefix: (robot id, data dir, swarm toml, run dir, listen, connect)
+UpCommand = Callable[[int, Path, Path, Path, list[str], list[str]], list[str]]
+
+
+# ``python -m cli.main`` would register the commands on a second copy of the module: call main() instead
+_ENTRY = "import sys; sys.argv[0] = 'dinerf-agent'; from cli.main import main; main()"
+
+
+def default_up_command(robot: int, data: Path, swarm: Path, run_dir: Path, listen: list[str], connect: list[str]) -> list[str]:
+    argv = [sys.executable, "-c", _ENTRY, "up", "--id", str(robot), "--data", str(data), "--swarm", str(swarm),
+            "--run-dir", str(run_dir)]
+    for ep in listen:
+        argv += ["--listen", ep]
+    for ep in connect:
+        argv += ["--connect", ep]
+    return argv
+
+
+def free_ports(count: int) -> list[int]:
+    """Ports free on loopback right now (held together while choosing, so they are distinct)."""
+    socks = []
+    try:
+        for _ in range(count):
+            s = socket.socket()
+            s.bind(("127.0.0.1", 0))
+            socks.append(s)
+        return [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()
+
+
+def prepare_split(spec: ScenarioSpec, out: Path) -> dict:
+    """Write the robot folders with ``agent.data.split`` (no shelling out); returns a summary."""
+    from agent.data.loaders import load_views
+    from agent.data.split import split_views, write_split
+
+    views = load_views(spec.resolved_dataset(), width=spec.width)
+    result = split_views(views, spec.split.to_split_config(spec.robots))
+    write_split(result, out, overwrite=True)
+    return {
+        "views": len(views),
+        "resolution": [views.width, views.height],
+        "robots": {rid: {"views": len(r.indices), "overlap": r.overlap} for rid, r in result.robots.items()},
+        "mean_overlap": result.mean_overlap,
+        "eval_views": len(result.eval_indices),
+        "reference": result.reference_id,
+    }
+
+
+@dataclass
+class RobotProcess:
+    """One robot's daemon as the runner sees it (across restarts)."""
+
+    id: int
+    run_dir: Path
+    log_path: Path
+    proc: subprocess.Popen | None = None
+    starts: int = 0
+    state: str = "new"  # new | running | killed | done | failed | stopped
+    records: list[dict] = field(default_factory=list)
+    exit_codes: list[int] = field(default_factory=list)
+    _pos: int = 0
+    _partial: str = ""
+
+    @property
+    def telemetry(self) -> Path:
+        return self.run_dir / "telemetry.jsonl"
+
+    def poll_telemetry(self) -> list[dict]:
+        """New complete lines of telemetry.jsonl since the last call."""
+        if not self.telemetry.is_file():
+            return []
+        with self.telemetry.open("r") as f:
+            f.seek(self._pos)
+            chunk = f.read()
+            self._pos = f.tell()
+        text = self._partial + chunk
+        lines = text.split("\n")
+        self._partial = lines.pop()  # an unfinished last line waits for the next call
+        new = []
+        for line in lines:
+            if line.strip():
+                with contextlib.suppress(json.JSONDecodeError):
+                    new.append(json.loads(line))
+        self.records.extend(new)
+        return new
+
+    @property
+    def completed(self) -> int:
+        """Rounds this robot has completed (0 before its first telemetry line)."""
+        return max((int(r.get("round", 0)) for r in self.records), default=0)
+
+
+@dataclass
+class RunOutcome:
+    ok: bool
+    reason: str
+    seconds: float
+    out: Path
+    events: list[dict]
+
+
+class ScenarioRunner:
+    """Runs one scenario once (see the module docstring). ``up_command`` is for tests of the runner."""
+
+    def __init__(
+        self,
+        spec: ScenarioSpec,
+        out: Path,
+        mode: str | None = None,
+        up_command: UpCommand | None = None,
+        echo: Callable[[str], None] = print,
+        poll_s: float = 0.2,
+    ) -> None:
+        self.spec = spec
+        self.mode = mode or spec.run.mode
+        spec.check_mode(self.mode)
+        self.out = Path(out)
+        self.up_command = up_command or default_up_command
+        self.echo = echo
+        self.poll_s = poll_s
+        self.robots = {
+            i: RobotProcess(i, self.out / "robots" / str(i), self.out / "logs" / f"robot{i}.log") for i in spec.ids
+        }
+        self.lab = None
+        self.events: list[dict] = []
+        self.t0 = time.monotonic()
+        self.endpoints: dict[int, tuple[list[str], list[str]]] = {}
+        self.split_summary: dict = {}
+
+    # --- set-up -------------------------------------------------------------------------------
+    def prepare(self) -> None:
+        self.out.mkdir(parents=True, exist_ok=True)
+        (self.out / "logs").mkdir(exist_ok=True)
+        self.echo(f"[scenario] {self.spec.name}: splitting {self.spec.dataset} into {self.spec.robots} robots")
+        self.split_summary = prepare_split(self.spec, self.out / "data")
+        for r in self.robots.values():
+            r.run_dir.mkdir(parents=True, exist_ok=True)
+
+    def _swarm_toml(self, endpoints: dict[int, str] | None) -> Path:
+        s = self.spec
+        daemon = dict(s.daemon)
+        daemon.setdefault("threads", s.run.threads)
+        daemon["keep_rounds"] = True  # the report evaluates rounds/<k>.pt
+        network = dict(s.network)
+        network.setdefault("multicast_scouting", False)
+        if endpoints:
+            network["endpoints"] = {str(k): v for k, v in endpoints.items()}
+        doc = {
+            "swarm": {
+                "name": f"{s.name}-{os.getpid()}-{int(time.time()) % 100000}",
+                "robots": s.ids,
+                "topology": s.topology.kind,
+                "edges": [list(e) for e in s.topology.edges] if s.topology.edges is not None else None,
+                "hub": s.topology.hub,
+                "scene": "data/scene.json",
+            },
+            "network": network,
+            "training": to_dict(s.training),
+            "daemon": daemon,
+        }
+        path = self.out / "swarm.toml"
+        path.write_text(f"# written by `dinerf-agent scenario run` for scenario {s.name!r}\n" + dumps(doc))
+        return path
+
+    def _setup_network(self) -> None:
+        if self.mode == "netns":
+            from cli.scenario.netns import NetnsLab
+
+            impairable = [f.link for f in self.spec.faults.netem]
+            self.lab = NetnsLab(self.spec.ids, self.spec.links, impairable=impairable, impair=self.spec.run.impair,
+                                log_dir=self.out / "logs")
+            self.lab.create()
+            self.endpoints = {i: self.lab.endpoints(i) for i in self.spec.ids}
+            self.swarm = self._swarm_toml(None)
+            self._event("network", namespaces=self.lab.describe())
+        else:
+            ports = free_ports(len(self.spec.ids))
+            own = {i: f"tcp/127.0.0.1:{p}" for i, p in zip(self.spec.ids, ports)}
+            topo = self.spec.topology_obj()
+            self.endpoints = {i: ([own[i]], [own[j] for j in sorted(topo.neighbours(i))]) for i in self.spec.ids}
+            self.swarm = self._swarm_toml(own)
+
+    # --- processes -----------------------------------------------------------------------------
+    def _argv(self, i: int) -> list[str]:
+        listen, connect = self.endpoints[i]
+        argv = self.up_command(i, self.out / "data" / f"robot{i}", self.swarm, self.robots[i].run_dir, listen, connect)
+        return self.lab.exec_argv(i, argv) if self.lab else argv
+
+    def _start(self, i: int) -> None:
+        r = self.robots[i]
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env.setdefault("OMP_NUM_THREADS", str(self.spec.run.threads))
+        root = str(Path(__file__).resolve().parents[2])
+        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        with r.log_path.open("a") as log:
+            log.write(f"\n===== start {r.starts + 1} at {self._now():.1f} s: {' '.join(self._argv(i))}\n")
+            log.flush()
+            r.proc = subprocess.Popen(self._argv(i), stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                      env=env, cwd=self.out, start_new_session=True)
+        r.starts += 1
+        r.state = "running"
+        self._event("start", robot=i, pid=r.proc.pid, start=r.starts)
+
+    def _kill(self, i: int) -> None:
+        r = self.robots[i]
+        if r.proc is not None and r.proc.poll() is None:
+            r.proc.kill()  # SIGKILL to the daemon itself (ip netns exec execs, so it is the same pid)
+            r.proc.wait(timeout=10)
+            r.exit_codes.append(r.proc.returncode)
+        r.state = "killed"
+
+    def _stop_all(self) -> None:
+        """SIGTERM every running daemon, wait a little, SIGKILL what remains."""
+        running = [r for r in self.robots.values() if r.proc is not None and r.proc.poll() is None]
+        for r in running:
+            with contextlib.suppress(ProcessLookupError):
+                r.proc.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + 15
+        for r in running:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                r.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+            if r.proc.poll() is None:
+                r.proc.kill()
+                r.proc.wait(timeout=10)
+            r.exit_codes.append(r.proc.returncode)
+            if r.state == "running":
+                r.state = "stopped"
+
+    # --- timeline ------------------------------------------------------------------------------
+    def _now(self) -> float:
+        return time.monotonic() - self.t0
+
+    def _event(self, kind: str, **info) -> None:
+        self.events.append({"event": kind, "time": round(self._now(), 3), **info})
+
+    def _timeline(self) -> list[tuple[int, int, str, Callable[[], None], dict]]:
+        """(round, order, description, action, info) sorted by round; ends of windows go first."""
+        f = self.spec.faults
+        items = []
+        for x in f.kill:
+            items.append((x.round, 2, f"kill robot {x.robot}", lambda x=x: self._kill(x.robot), {"fault": "kill", "robot": x.robot}))
+        for x in f.restart:
+            items.append((x.round, 3, f"restart robot {x.robot}", lambda x=x: self._start(x.robot), {"fault": "restart", "robot": x.robot}))
+        for x in f.cut:
+            a, b = x.link
+            items.append((x.from_round, 1, f"cut link {a}-{b}", lambda a=a, b=b: self.lab.set_link(a, b, False), {"fault": "cut", "link": [a, b]}))
+            if x.to_round is not None and x.to_round < self.spec.rounds:
+                items.append((x.to_round, 0, f"heal link {a}-{b}", lambda a=a, b=b: self.lab.set_link(a, b, True), {"fault": "heal", "link": [a, b]}))
+        for x in f.netem:
+            a, b = x.link
+            desc = f"netem on link {a}-{b}: delay {x.delay_ms:g} ms +- {x.jitter_ms:g}, loss {100 * x.loss:g}%"
+            items.append((x.from_round, 1, desc, lambda x=x: self.lab.impair(*x.link, x.delay_ms, x.jitter_ms, x.loss),
+                          {"fault": "netem", "link": [a, b], "delay_ms": x.delay_ms, "jitter_ms": x.jitter_ms, "loss": x.loss}))
+            if x.to_round is not None and x.to_round < self.spec.rounds:
+                items.append((x.to_round, 0, f"clean link {a}-{b}", lambda a=a, b=b: self.lab.impair(a, b), {"fault": "netem-end", "link": [a, b]}))
+        return sorted(items, key=lambda t: (t[0], t[1]))
+
+    def swarm_round(self) -> int:
+        """The round the swarm is in (from 0): the most rounds any robot has completed."""
+        return max((r.completed for r in self.robots.values()), default=0)
+
+    def _expected_alive_at_end(self) -> set[int]:
+        alive = set(self.spec.ids)
+        for rnd, _, kind, r in sorted([(k.round, 0, "kill", k.robot) for k in self.spec.faults.kill]
+                                      + [(s.round, 1, "restart", s.robot) for s in self.spec.faults.restart]):
+            (alive.discard if kind == "kill" else alive.add)(r)
+        return alive
+
+    # --- the run -------------------------------------------------------------------------------
+    def run(self) -> RunOutcome:
+        from cli.scenario.netns import signals_raise
+
+        ok, reason = False, "not started"
+        self.t0 = time.monotonic()
+        with signals_raise():
+            try:
+                self.prepare()
+                self._setup_network()
+                for i in self.spec.ids:
+                    self._start(i)
+                ok, reason = self._loop()
+            except KeyboardInterrupt as e:
+                ok, reason = False, f"interrupted ({e or 'Ctrl-C'})"
+                self.echo(f"[scenario] {reason}: stopping the robots")
+            finally:
+                self._stop_all()
+                if self.lab is not None:
+                    self.lab.cleanup()
+                    self._event("network-removed")
+        for r in self.robots.values():
+            r.poll_telemetry()
+        seconds = self._now()
+        self._write_run_json(ok, reason, seconds)
+        return RunOutcome(ok, reason, seconds, self.out, self.events)
+
+    def _loop(self) -> tuple[bool, str]:
+        pending = self._timeline()
+        expected = self._expected_alive_at_end()
+        deadline = self.t0 + self.spec.run.timeout_s
+        seen_round = 0
+        while True:
+            for r in self.robots.values():
+                for rec in r.poll_telemetry():
+                    self._progress(r.id, rec)
+            rnd = self.swarm_round()
+            if rnd > seen_round:
+                seen_round = rnd
+            while pending and pending[0][0] <= rnd:
+                at, _, desc, action, info = pending.pop(0)
+                self.echo(f"[scenario] round {rnd}: {desc}")
+                action()
+                self._event("fault", round=at, swarm_round=rnd, description=desc,
+                            robot_rounds={i: r.completed for i, r in self.robots.items()}, **info)
+            for r in self.robots.values():
+                if r.state != "running" or r.proc is None or r.proc.poll() is None:
+                    continue
+                code = r.proc.returncode
+                r.exit_codes.append(code)
+                done = (r.run_dir / "done.json").is_file()
+                r.state = "done" if code == 0 and done else "failed"
+                self._event("exit", robot=r.id, code=code, done=done)
+                if r.state == "failed":
+                    tail = _tail(r.log_path)
+                    return False, f"robot {r.id} exited with code {code}{': ' + tail if tail else ''}"
+                self.echo(f"[scenario] robot {r.id} finished ({len(r.records)} rounds logged)")
+            if all(self.robots[i].state == "done" for i in expected) and not any(
+                    r.state == "running" for r in self.robots.values()):
+                if pending:
+                    self._event("unapplied", faults=[p[2] for p in pending])
+                return True, "all robots finished"
+            if time.monotonic() > deadline:
+                return False, f"timeout after {self.spec.run.timeout_s:g} s (swarm at round {rnd} of {self.spec.rounds})"
+            time.sleep(self.poll_s)
+
+    def _progress(self, robot: int, rec: dict) -> None:
+        line = f"[robot {robot}] round {rec.get('round')}"
+        for key, fmt in (("loss", ".4f"), ("psnr", ".2f")):
+            if isinstance(rec.get(key), (int, float)):
+                line += f", {key} {rec[key]:{fmt}}"
+        if "heard" in rec:
+            line += f", heard {rec['heard']}"
+        self.echo(line)
+
+    def _write_run_json(self, ok: bool, reason: str, seconds: float) -> None:
+        doc = {
+            "scenario": spec_to_dict(self.spec),
+            "mode": self.mode,
+            "ok": ok,
+            "reason": reason,
+            "seconds": seconds,
+            "split": self.split_summary,
+            "endpoints": {str(i): {"listen": l, "connect": c} for i, (l, c) in self.endpoints.items()},
+            "robots": {
+                str(i): {"starts": r.starts, "state": r.state, "exit_codes": r.exit_codes, "rounds_logged": len(r.records)}
+                for i, r in self.robots.items()
+            },
+            "events": self.events,
+        }
+        (self.out / "run.json").write_text(json.dumps(doc, indent=2, default=str) + "\n")
+
+
+def _tail(path: Path, lines: int = 1) -> str:
+    try:
+        text = [l for l in path.read_text(errors="replace").splitlines() if l.strip()]
+    except OSError:
+        return ""
+    return " | ".join(text[-lines:])[:300]

@@ -1,0 +1,109 @@
+"""The scenario runner's orchestration, driven with a stand-in daemon (tests/scenarios/stand_in_up.py).
+
+These tests check the timeline, kill/restart, link cuts and cleanup of the *runner*; they say
+nothing about training (test_e2e.py runs the real daemon).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from cli.config import ConfigError
+from cli.scenario.netns import list_namespaces
+from cli.scenario.runner import ScenarioRunner
+from cli.scenario.spec import load_scenario
+from tests.scenarios.netns_helpers import needs_netns
+
+TOML = """
+[scenario]
+name = "orchestration"
+dataset = "procedural:views=24,width=16"
+robots = 3
+[topology]
+kind = "line"
+[training]
+rounds = 8
+steps_per_round = 1
+"""
+
+
+def stand_in(robot, data, swarm, run_dir, listen, connect):
+    argv = [sys.executable, "-m", "tests.scenarios.stand_in_up", "up", "--id", str(robot), "--data", str(data),
+            "--swarm", str(swarm), "--run-dir", str(run_dir), "--round-s", "0.25"]
+    for ep in listen:
+        argv += ["--listen", ep]
+    for ep in connect:
+        argv += ["--connect", ep]
+    return argv
+
+
+def spec_with(tmp_path: Path, extra: str):
+    p = tmp_path / "scenario.toml"
+    p.write_text(TOML + extra)
+    return load_scenario(p)
+
+
+def test_kill_and_restart_on_the_timeline(tmp_path):
+    spec = spec_with(tmp_path, "[faults]\nkill = [{ robot = 3, round = 2 }]\nrestart = [{ robot = 3, round = 5 }]\n")
+    out = tmp_path / "run"
+    res = ScenarioRunner(spec, out, mode="local", up_command=stand_in, echo=lambda s: None).run()
+    assert res.ok, res.reason
+    run = json.loads((out / "run.json").read_text())
+    faults = [e for e in run["events"] if e["event"] == "fault"]
+    assert [(f["fault"], f["robot"]) for f in faults] == [("kill", 3), ("restart", 3)]
+    kill, restart = faults
+    assert kill["swarm_round"] >= 2 and restart["swarm_round"] >= 5
+    assert max(kill["robot_rounds"].values()) == 2  # fired as soon as someone had completed 2 rounds
+    assert run["robots"]["3"]["starts"] == 2 and run["robots"]["3"]["exit_codes"][0] == -9  # SIGKILL
+    rounds3 = [json.loads(l)["round"] for l in (out / "robots/3/telemetry.jsonl").read_text().splitlines()]
+    assert rounds3 == sorted(set(rounds3)) and rounds3[-1] == 8  # resumed, no round twice, finished
+    for i in (1, 2, 3):
+        assert (out / f"robots/{i}/done.json").is_file()
+    assert (out / "data/robot1/transforms.json").is_file() and (out / "swarm.toml").is_file()
+
+
+def test_link_faults_need_netns(tmp_path):
+    spec = spec_with(tmp_path, "[faults]\ncut = [{ link = [1, 2], from_round = 1, to_round = 3 }]\n")
+    with pytest.raises(ConfigError, match="--mode netns"):
+        ScenarioRunner(spec, tmp_path / "run", mode="local", up_command=stand_in)
+
+
+def test_failing_robot_stops_the_run(tmp_path):
+    spec = spec_with(tmp_path, "")
+
+    def broken(robot, *args):
+        return stand_in(robot, *args) if robot != 2 else [sys.executable, "-c", "import sys; print('boom'); sys.exit(2)"]
+
+    res = ScenarioRunner(spec, tmp_path / "run", mode="local", up_command=broken, echo=lambda s: None).run()
+    assert not res.ok and "robot 2 exited with code 2: boom" in res.reason
+
+
+@needs_netns
+@pytest.mark.netns
+def test_cut_link_in_netns_is_seen_by_the_robots(tmp_path):
+    """Cut 1-2 during rounds 2..5: robot 1 hears nobody then, and hears 2 again after the heal."""
+    spec = spec_with(tmp_path, '[run]\nmode = "netns"\n[faults]\ncut = [{ link = [1, 2], from_round = 2, to_round = 5 }]\n')
+    out = tmp_path / "run"
+    runner = ScenarioRunner(spec, out, up_command=stand_in, echo=lambda s: None)
+    res = runner.run()
+    assert res.ok, res.reason
+    assert not [n for n in list_namespaces() if n.startswith(runner.lab.run_id)]
+    recs = [json.loads(l) for l in (out / "robots/1/telemetry.jsonl").read_text().splitlines()]
+    heard = {r["round"]: r["heard"] for r in recs}
+    run = json.loads((out / "run.json").read_text())
+    cut = next(e for e in run["events"] if e.get("fault") == "cut")
+    heal = next(e for e in run["events"] if e.get("fault") == "heal")
+    # robot 1's rounds that ran entirely inside the cut heard nothing; those after the heal heard robot 2
+    inside = [k for k in heard if k > cut["robot_rounds"]["1"] + 1 and k <= heal["robot_rounds"]["1"]]
+    after = [k for k in heard if k > heal["robot_rounds"]["1"] + 1]
+    assert inside and after
+    assert all(heard[k] == [] for k in inside), heard
+    assert all(heard[k] == ["tcp/198.18.0.2:7447"] for k in after), heard
+    assert all(len(heard[k]) == 1 for k in heard if k < cut["robot_rounds"]["1"])
+    # robot 3 (not on the cut link) always heard 2
+    recs3 = [json.loads(l) for l in (out / "robots/3/telemetry.jsonl").read_text().splitlines()]
+    assert all(r["heard"] == ["tcp/198.18.0.5:7447"] for r in recs3)
