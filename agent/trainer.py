@@ -113,9 +113,14 @@ class RelativePose(nn.Module):
         return self.phi.requires_grad
 
     def matrix(self) -> Tensor:
-        """T_shared_from_local: [4, 4] (differentiable in the correction)."""
+        """T_shared_from_local: [4, 4] (differentiable in the correction).
+
+        Written as ``T0 + B^-1 (Exp(delta) - I) B T0`` so that a zero correction gives T0 bit for
+        bit: freezing (or a reference election) never nudges the pose by round-off.
+        """
         delta = sim3_from_params(self.log_scale, self.phi, self.translation)
-        return self.box_inv @ delta @ self.box @ self.base
+        eye = torch.eye(4, dtype=delta.dtype, device=delta.device)
+        return self.base + self.box_inv @ (delta - eye) @ self.box @ self.base
 
     @torch.no_grad()
     def freeze(self) -> None:
@@ -123,7 +128,8 @@ class RelativePose(nn.Module):
 
         The frozen T is the current estimate, not the identity, so the shared frame stays put.
         """
-        self.base.copy_(self.matrix())
+        if any(bool(p.detach().abs().max() > 0) for p in (self.phi, self.translation, self.log_scale)):
+            self.base.copy_(self.matrix())
         for p in (self.phi, self.translation, self.log_scale):
             p.zero_()
         self.set_trainable(False)

@@ -19,6 +19,7 @@ app = typer.Typer(
 COMMAND_MODULES = [
     "cli.cmd_data",
     "cli.cmd_train",
+    "cli.cmd_up",
 ]
 
 

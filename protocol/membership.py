@@ -193,3 +193,67 @@ class Membership:
     def events(self) -> list[MembershipEvent]:
         with self._lock:
             return list(self._events)
+
+
+class AliveView:
+    """Who is alive anywhere in the swarm, from direct tokens plus relayed evidence.
+
+    Zenoh peers do not relay for each other, so a robot sees the liveliness tokens of its
+    direct peers only; in a line or a star it could not tell whether the lowest id (the
+    reference) is alive. Each robot therefore reports in its Status how long ago it last had
+    evidence of each robot (``report``); receivers turn ages into times on their own clock
+    (``merge``) and keep the freshest. Ages only grow as they travel, so a dead robot's
+    evidence expires everywhere ``expiry_s`` after its last neighbour lost its token; a token
+    seen leaving overrides relayed evidence older than the departure.
+
+    Times are ``time.monotonic()`` of this process; pass ``now`` explicitly in tests.
+    """
+
+    def __init__(self, self_id: int, expiry_s: float = 2.0):
+        if expiry_s <= 0:
+            raise ValueError("expiry_s must be positive")
+        self.self_id = self_id
+        self.expiry_s = expiry_s
+        self._lock = threading.Lock()
+        self._direct: frozenset[int] = frozenset()
+        self._last_seen: dict[int, float] = {}  # freshest evidence (monotonic time)
+        self._left_at: dict[int, float] = {}  # when a direct token vanished
+
+    def set_direct(self, ids: Iterable[int], now: float | None = None) -> None:
+        """The ids whose liveliness tokens this robot sees right now."""
+        now = time.monotonic() if now is None else now
+        ids = frozenset(ids) - {self.self_id}
+        with self._lock:
+            for gone in self._direct - ids:
+                self._left_at[gone] = now
+                self._last_seen.pop(gone, None)  # we saw it leave: stop vouching at once
+            for i in ids:
+                self._last_seen[i] = now
+            self._direct = ids
+
+    def merge(self, ages: dict[int, float], now: float | None = None) -> None:
+        """Evidence relayed by a neighbour: {id: seconds since it was last seen alive}."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            for i, age in ages.items():
+                if i == self.self_id or i in self._direct:
+                    continue
+                seen = now - max(float(age), 0.0)
+                if seen > self._left_at.get(i, float("-inf")) and seen > self._last_seen.get(i, float("-inf")):
+                    self._last_seen[i] = seen
+
+    def alive(self, now: float | None = None) -> frozenset[int]:
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            fresh = {i for i, t in self._last_seen.items() if i in self._direct or now - t < self.expiry_s}
+            return frozenset(fresh | self._direct | {self.self_id})
+
+    def report(self, now: float | None = None) -> dict[int, float]:
+        """What to gossip: {id: age in seconds} for every robot currently believed alive."""
+        now = time.monotonic() if now is None else now
+        alive = self.alive(now)
+        with self._lock:
+            return {
+                i: 0.0 if i == self.self_id or i in self._direct else max(now - self._last_seen[i], 0.0)
+                for i in alive
+            }

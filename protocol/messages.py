@@ -221,6 +221,9 @@ class Status:
     wall_time: float
     seconds_compute: float
     seconds_wait: float
+    #: Liveness gossip: {robot id: seconds since the sender last had evidence it was alive}.
+    #: Zenoh peers do not relay, so this is how robots learn about non-neighbours.
+    alive_ages: dict[int, float] = field(default_factory=dict)
     header: Header | None = None
 
     kind = KIND_STATUS
@@ -240,6 +243,7 @@ class Status:
         "wall_time",
         "seconds_compute",
         "seconds_wait",
+        "alive_ages",
     )
 
 
@@ -349,6 +353,14 @@ def check_status_body(body: Any) -> dict[str, Any]:
         if v is None or v < 0:
             raise bad(name, "expected a non-negative number")
         out[name] = v
+    ages = body["alive_ages"]
+    if not isinstance(ages, list) or not all(
+        isinstance(p, list) and len(p) == 2 and is_int(p[0]) and 0 <= p[0] <= MAX_ROUND and is_number(p[1])
+        and math.isfinite(p[1]) and p[1] >= 0
+        for p in ages
+    ):
+        raise bad("alive_ages", "expected a list of [robot id, non-negative age in seconds]")
+    out["alive_ages"] = {int(i): float(a) for i, a in ages}
     return out
 
 
@@ -368,4 +380,5 @@ def status_body(msg: Status) -> dict[str, Any]:
         "wall_time": float(msg.wall_time),
         "seconds_compute": float(msg.seconds_compute),
         "seconds_wait": float(msg.seconds_wait),
+        "alive_ages": [[int(i), float(a)] for i, a in sorted(msg.alive_ages.items())],
     }

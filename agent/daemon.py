@@ -1,0 +1,535 @@
+"""The long-running agent of one robot: rounds over the network, checkpoints, telemetry.
+
+This module joins the trainer (``agent``) to the pure parts of the protocol (keys, messages,
+codec, rounds, membership). It never imports Zenoh: the transport is injected (anything with the
+methods of :class:`Network`; ``protocol.transport.ZenohTransport`` in production), which is how
+rmw_zenoh and Swarm-SLAM keep transport, membership and application logic apart.
+
+One round k, exactly as :class:`agent.swarm.Simulation` does it in memory::
+
+    begin_round(k, theta_j^k heard)  ->  B training steps  ->  publish theta_i^{k+1}
+    ->  barrier: theta_j^{k+1} from live neighbours until a deadline  ->  dual update
+    ->  atomic checkpoint, telemetry line, status
+
+Membership is decided by liveliness tokens plus gossip of ages carried in the status messages
+(Zenoh peers do not relay, so a robot cannot see non-neighbours' tokens). The reference (lowest
+live id) keeps its pose fixed; a newly elected reference freezes its *current* estimate, so the
+shared frame, the field and every other robot's pose stay valid.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Literal, Mapping, Protocol
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from agent.data.views import Views
+from agent.geometry import sim3_to_params
+from agent.swarm import RobotSetup, SwarmTrainingConfig, build_robot
+from protocol import codec
+from protocol.keys import Keys
+from protocol.membership import AliveView, Membership, Topology
+from protocol.messages import ModelSpec, Rejected, Status, ThetaSnapshot
+from protocol.rounds import Mailbox
+
+CHECKPOINT = "checkpoint.pt"
+
+
+@dataclass
+class DaemonConfig:
+    round_timeout_s: float = 120.0  # how long the barrier waits for neighbours after own compute
+    startup_wait_s: float = 20.0  # wait this long for the whole roster before round 0
+    threads: int = 1  # torch threads (several robots often share a machine)
+    wire_dtype: Literal["float32", "float16"] = "float32"  # float16 halves bytes, is lossy
+    compression: Literal["zstd", "none"] = "zstd"
+    max_ahead: int = 4  # rounds of a faster neighbour buffered ahead of ours
+    heartbeat_s: float = 0.5  # status / liveness gossip period
+    alive_expiry_s: float = 2.0  # relayed liveness evidence older than this is dropped
+    linger_s: float = 3.0  # after the last round, keep serving the newest snapshot this long
+    eval_every: int = 1  # rounds between PSNR evaluations on own held-out views (0 = never)
+    keep_rounds: bool = False  # also save rounds/<k>.pt (field + pose) for per-round reports
+    join_timeout_s: float = 5.0  # query timeout for neighbours' newest snapshots
+
+    def __post_init__(self) -> None:
+        if self.round_timeout_s <= 0 or self.heartbeat_s <= 0 or self.threads < 1:
+            raise ValueError("round_timeout_s and heartbeat_s must be > 0, threads >= 1")
+
+
+@dataclass(frozen=True)
+class SwarmIdentity:
+    """Who the swarm is: its name and the static graph of who may talk to whom."""
+
+    name: str
+    topology: Topology
+
+
+class Network(Protocol):
+    """What the daemon needs from a transport (``protocol.transport.ZenohTransport``)."""
+
+    def declare_alive(self) -> None: ...
+    def watch_alive(self, callback: Callable[[frozenset[int]], None]) -> Any: ...
+    def subscribe(self, key_expr: str, callback: Callable[[str, bytes], None]) -> Any: ...
+    def publish(self, key: str, data: bytes) -> None: ...
+    def set_latest(self, data: bytes | None) -> None: ...
+    def query(self, key: str, timeout: float | None = None) -> bytes | None: ...
+    def stats(self) -> dict[str, Any]: ...
+
+
+class Stop(Exception):
+    """Raised inside training to leave the round loop promptly (SIGTERM, test harness)."""
+
+
+def model_spec(setup: RobotSetup) -> ModelSpec:
+    """Layout + architecture of theta: robots whose fields differ must not mix parameters."""
+    trainer = setup.trainer
+    arch = {
+        "field": dataclasses.asdict(trainer.cfg.field),
+        "box_from_shared": [round(float(x), 9) for x in trainer.box_from_shared.flatten()],
+        "init_seed": trainer.cfg.init_seed,
+    }
+    arrays = {n: t.cpu().numpy() for n, t in trainer.theta().items()}
+    return ModelSpec.from_tensors(arrays, arch)
+
+
+def _to_numpy(theta: Mapping[str, Tensor]) -> dict[str, np.ndarray]:
+    return {n: np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32) for n, t in theta.items()}
+
+
+def _to_torch(snapshot: ThetaSnapshot) -> dict[str, Tensor]:
+    return {n: torch.from_numpy(np.array(a, dtype=np.float32, copy=True)) for n, a in snapshot.tensors.items()}
+
+
+def _atomic_torch_save(obj: Any, path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(obj, tmp)
+    with open(tmp, "rb") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def pose_summary(T: Tensor) -> dict[str, Any]:
+    log_s, phi, t = sim3_to_params(T.detach().double().cpu())
+    return {
+        "scale": math.exp(float(log_s)),
+        "rotation_deg": math.degrees(float(phi.norm())),
+        "translation": [float(x) for x in t],
+        "params7": [float(log_s), *map(float, phi), *map(float, t)],
+    }
+
+
+class Daemon:
+    """One robot in the swarm. ``run()`` blocks until all rounds are done (or ``stop()``)."""
+
+    def __init__(
+        self,
+        robot_id: int,
+        views: Views,
+        box_from_shared: Tensor,
+        swarm: SwarmIdentity,
+        training: SwarmTrainingConfig,
+        cfg: DaemonConfig,
+        network: Network,
+        run_dir: Path,
+        initial_pose: Tensor | None = None,
+        log: Callable[[str], None] = print,
+    ) -> None:
+        if robot_id not in swarm.topology.ids:
+            raise ValueError(f"robot {robot_id} is not in the swarm's robots {list(swarm.topology.ids)}")
+        torch.set_num_threads(cfg.threads)
+        self.robot_id = robot_id
+        self.swarm = swarm
+        self.training = training
+        self.cfg = cfg
+        self.net = network
+        self.keys = Keys(swarm.name)
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.log = log
+        self.setup = build_robot(robot_id, views, box_from_shared, training, initial_pose, is_reference=False)
+        self.trainer = self.setup.trainer
+        self.spec = model_spec(self.setup)
+        self.expect = codec.Expectation(
+            swarm=swarm.name,
+            spec=self.spec,
+            allowed_senders=frozenset(swarm.topology.ids),
+            max_wire_bytes=2 * self.spec.num_values * 4 + (1 << 20),
+            max_decompressed_bytes=self.spec.num_values * 4 + (1 << 20),
+        )
+        self.status_expect = codec.Expectation(swarm=swarm.name, allowed_senders=frozenset(swarm.topology.ids))
+        self.membership = Membership(swarm.topology, robot_id)
+        self.alive = AliveView(robot_id, cfg.alive_expiry_s)
+        self.mailbox: Mailbox[ThetaSnapshot] = Mailbox(max_ahead=cfg.max_ahead)
+        self.rejected: Counter[str] = Counter()
+        self.round = 0
+        self.elected = False  # pose frozen because this robot is the reference
+        self._stop = threading.Event()
+        self._state_lock = threading.Lock()
+        self._last_status: dict[str, Any] = {}
+        self._events = open(self.run_dir / "events.jsonl", "a")
+        self._telemetry = open(self.run_dir / "telemetry.jsonl", "a")
+        self._heartbeat: threading.Thread | None = None
+        self._last_heard: dict[int, ThetaSnapshot] = {}
+        with torch.no_grad():
+            self._last_status["pose7"] = pose_summary(self.trainer.pose.matrix())["params7"]
+
+    # ------------------------------------------------------------------ network callbacks
+    def _on_theta(self, key: str, data: bytes) -> None:
+        try:
+            parsed = self.keys.parse(key)
+            msg = codec.decode(data, self.expect, kind="theta", key=parsed)
+            self.mailbox.offer(msg.sender, msg.round, msg)
+        except Rejected as e:
+            self._reject(e.reason, f"{key}: {e.detail}")
+        except ValueError as e:  # a foreign key on our subscription
+            self._reject("garbage", f"{key}: {e}")
+
+    def _on_status(self, key: str, data: bytes) -> None:
+        try:
+            msg = codec.decode(data, self.status_expect, kind="status", key=self.keys.parse(key))
+        except Rejected as e:
+            self._reject(e.reason, f"{key}: {e.detail}")
+            return
+        except ValueError as e:
+            self._reject("garbage", f"{key}: {e}")
+            return
+        self.alive.merge(msg.alive_ages)
+
+    def _on_alive(self, ids: frozenset[int]) -> None:
+        self.alive.set_direct(ids)
+        self._refresh_membership()
+
+    def _reject(self, reason: str, detail: str) -> None:
+        with self._state_lock:
+            self.rejected[reason] += 1
+            count = self.rejected[reason]
+        if count <= 3 or count % 100 == 0:
+            self.log(f"[robot {self.robot_id}] rejected a message ({reason}, #{count}): {detail[:200]}")
+
+    def _refresh_membership(self) -> None:
+        if self.membership.update(self.alive.alive()):
+            self.mailbox.notify()
+            m = self.membership
+            self._event("membership", alive=sorted(m.alive), reference=m.reference, epoch=m.epoch)
+
+    def _event(self, kind: str, **fields: Any) -> None:
+        rec = {"event": kind, "robot": self.robot_id, "monotonic": time.monotonic(), "time": time.time(),
+               "round": self.round, **fields}
+        with self._state_lock:
+            self._events.write(json.dumps(rec) + "\n")
+            self._events.flush()
+
+    # ------------------------------------------------------------------ reference / gauge
+    def _apply_reference(self) -> None:
+        """Freeze the pose when this robot becomes the reference; resume when it stops being it."""
+        is_ref = self.membership.reference == self.robot_id
+        if is_ref and not self.elected:
+            before = self.trainer.pose.matrix().detach().clone()
+            self.trainer.pose.freeze()
+            self.elected = True
+            jump = float((self.trainer.pose.matrix().detach() - before).abs().max())
+            self._event("reference_elected", epoch=self.membership.epoch, pose_change=jump)
+            self.log(f"[robot {self.robot_id}] I am the reference now (epoch {self.membership.epoch}); "
+                     f"pose frozen at its current estimate")
+        elif not is_ref and self.elected:
+            self.trainer.pose.unfreeze()
+            self.elected = False
+            self._event("reference_resigned", reference=self.membership.reference, epoch=self.membership.epoch)
+            self.log(f"[robot {self.robot_id}] robot {self.membership.reference} is the reference again; "
+                     f"learning my pose")
+
+    # ------------------------------------------------------------------ heartbeat
+    def _status_message(self) -> Status:
+        with self._state_lock:
+            s = dict(self._last_status)
+            rejected = dict(self.rejected)
+        return Status(
+            swarm=self.swarm.name, sender=self.robot_id, round=self.round, epoch=self.membership.epoch,
+            reference=self.membership.reference, phase=s.get("phase", "starting"), loss=s.get("loss"),
+            psnr=s.get("psnr"), pose=s["pose7"], neighbours_heard=s.get("heard", []),
+            bytes_in=int(s.get("bytes_in_total", 0)), bytes_out=int(s.get("bytes_out_total", 0)),
+            rejected=rejected, alignment=s.get("alignment", "n/a"), wall_time=time.time(),
+            seconds_compute=float(s.get("seconds_compute", 0.0)), seconds_wait=float(s.get("seconds_wait", 0.0)),
+            alive_ages=self.alive.report(),
+        )
+
+    def _heartbeat_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self._refresh_membership()
+                self.net.publish(self.keys.status(self.robot_id), codec.encode(self._status_message()))
+            except Exception as e:  # never let telemetry kill the robot
+                self.log(f"[robot {self.robot_id}] heartbeat failed: {type(e).__name__}: {e}")
+            self._stop.wait(self.cfg.heartbeat_s)
+
+    # ------------------------------------------------------------------ snapshots
+    def _publish_theta(self, round_index: int) -> int:
+        msg = ThetaSnapshot(swarm=self.swarm.name, sender=self.robot_id, round=round_index,
+                            epoch=self.membership.epoch, signature=self.spec.signature(),
+                            tensors=_to_numpy(self.trainer.theta()))
+        data = codec.encode(msg, wire_dtype=self.cfg.wire_dtype, compression=self.cfg.compression, spec=self.spec)
+        self.net.set_latest(data)
+        self.net.publish(self.keys.theta(self.robot_id, round_index), data)
+        return len(data) * max(len(self.membership.live_neighbours), 1)
+
+    def _barrier(self, round_index: int) -> tuple[dict[int, ThetaSnapshot], float]:
+        """Neighbours' round-k snapshots, waiting until every live neighbour answered or the deadline."""
+        got = self.mailbox.wait(round_index, lambda: set(self.membership.live_neighbours), self.cfg.round_timeout_s)
+        if not got.complete:
+            self.log(f"[robot {self.robot_id}] round {round_index}: no snapshot from {sorted(got.missing)} "
+                     f"within {self.cfg.round_timeout_s:.0f} s; going on with {sorted(got.items)}")
+        heard = {j: got.items[j] for j in sorted(got.items) if j in self.membership.neighbours}
+        return heard, got.waited_s
+
+    def _join_current_round(self) -> None:
+        """Late join / restart: fetch the neighbours' newest snapshots and move to their round."""
+        newest: dict[int, ThetaSnapshot] = {}
+        for j in sorted(self.membership.live_neighbours):
+            data = self.net.query(self.keys.latest(j), timeout=self.cfg.join_timeout_s)
+            if data is None:
+                continue
+            try:
+                msg = codec.decode(data, self.expect, kind="theta")
+            except Rejected as e:
+                self._reject(e.reason, f"latest of robot {j}: {e.detail}")
+                continue
+            if msg.sender == j:
+                newest[j] = msg
+        if not newest:
+            return
+        target = max(m.round for m in newest.values())
+        if target <= self.round:
+            for j, m in newest.items():
+                if m.round >= self.round:
+                    self._offer_quietly(j, m)
+            return
+        fresh_start = self.round == 0 and self.trainer.step == 0
+        if fresh_start:  # a new robot starts from the swarm's current model, not from theta^0
+            at_target = [_to_torch(m) for m in newest.values() if m.round == target]
+            mean = {n: sum(t[n] for t in at_target) / len(at_target) for n in at_target[0]}
+            self.trainer.load_theta(mean)
+        self._event("joined", from_round=self.round, to_round=target, fresh=fresh_start)
+        self.log(f"[robot {self.robot_id}] joining the swarm at round {target} (was at {self.round}"
+                 f"{', warm start from neighbours' if fresh_start else ''})")
+        self.round = target
+        self.mailbox.advance(target)
+        for j, m in newest.items():
+            if m.round >= target:
+                self._offer_quietly(j, m)
+
+    def _offer_quietly(self, sender: int, msg: ThetaSnapshot) -> None:
+        try:
+            self.mailbox.offer(sender, msg.round, msg)
+        except Rejected:
+            pass
+
+    def _catch_up(self, heard: dict[int, ThetaSnapshot]) -> dict[int, ThetaSnapshot]:
+        """If neighbours are ahead of us (we were slow or cut off), jump to their newest round."""
+        ahead = {j: r for j in self.membership.live_neighbours
+                 if (r := self.mailbox.newest_round(j)) is not None and r > self.round}
+        if not ahead:
+            return heard
+        target = max(ahead.values())
+        items = {j: m for j, m in self.mailbox.items(target).items() if j in self.membership.neighbours}
+        self._event("caught_up", from_round=self.round, to_round=target)
+        self.log(f"[robot {self.robot_id}] neighbours are at round {target}; skipping from {self.round}")
+        self.round = target
+        self.mailbox.advance(target)
+        return dict(sorted(items.items()))
+
+    # ------------------------------------------------------------------ checkpoints
+    def _checkpoint(self) -> None:
+        state = {
+            "round": self.round,
+            "robot_id": self.robot_id,
+            "trainer": self.trainer.state_dict(),
+            "elected": self.elected,
+            "training": self.training,  # the dataclass itself: load_for_eval rebuilds the robot from it
+            "box_from_shared": self.trainer.box_from_shared.cpu(),
+            "signature": self.spec.signature(),
+        }
+        _atomic_torch_save(state, self.run_dir / CHECKPOINT)
+        if self.cfg.keep_rounds:
+            (self.run_dir / "rounds").mkdir(exist_ok=True)
+            snap = {"round": self.round, "field": self.trainer.field.state_dict(),
+                    "grid": self.trainer.grid.state_dict(), "pose": self.trainer.pose.state_dict()}
+            _atomic_torch_save(snap, self.run_dir / "rounds" / f"{self.round:05d}.pt")
+
+    def _resume(self) -> bool:
+        path = self.run_dir / CHECKPOINT
+        if not path.is_file():
+            return False
+        try:
+            state = torch.load(path, map_location=self.trainer.device, weights_only=False)
+            if state.get("signature") != self.spec.signature():
+                raise ValueError("the model in the checkpoint differs from the configured one")
+            self.trainer.load_state_dict(state["trainer"])
+        except Exception as e:
+            raise RuntimeError(f"cannot resume from {path}: {e} (move it away to start fresh)") from None
+        self.round = int(state["round"])
+        self.elected = bool(state.get("elected", False))
+        self.mailbox.advance(self.round)
+        self._event("resumed", from_round=self.round)
+        self.log(f"[robot {self.robot_id}] resumed from {path} at round {self.round}")
+        return True
+
+    # ------------------------------------------------------------------ the round loop
+    def stop(self) -> None:
+        self._stop.set()
+        self.mailbox.notify()
+
+    def _check_stop(self, _step: int = 0) -> None:
+        if self._stop.is_set():
+            raise Stop()
+        # A failover must not wait for the end of the round: apply it between steps.
+        if (self.membership.reference == self.robot_id) != self.elected:
+            self._apply_reference()
+
+    def _wait_for_roster(self) -> None:
+        deadline = time.monotonic() + self.cfg.startup_wait_s
+        everyone = set(self.swarm.topology.ids)
+        while time.monotonic() < deadline and not self._stop.is_set():
+            self._refresh_membership()
+            if set(self.membership.alive) >= everyone:
+                return
+            time.sleep(0.1)
+        missing = sorted(everyone - set(self.membership.alive))
+        if missing:
+            self.log(f"[robot {self.robot_id}] starting without {missing} (not seen within "
+                     f"{self.cfg.startup_wait_s:.0f} s)")
+
+    def run(self) -> int:
+        """Returns the number of rounds completed by this process."""
+        cfg = self.cfg
+        resumed = self._resume()
+        self.net.declare_alive()
+        self.net.watch_alive(self._on_alive)
+        for j in sorted(self.membership.neighbours):
+            self.net.subscribe(self.keys.theta_of(j), self._on_theta)
+            self.net.subscribe(self.keys.status(j), self._on_status)
+        self._heartbeat = threading.Thread(target=self._heartbeat_loop, name="heartbeat", daemon=True)
+        self._heartbeat.start()
+        completed = 0
+        try:
+            self._wait_for_roster()
+            self._join_current_round()
+            self._apply_reference()
+            self._event("start", resumed=resumed, alive=sorted(self.membership.alive),
+                        reference=self.membership.reference)
+            stats0 = self.net.stats()
+            self._publish_theta(self.round)
+            heard, _ = self._barrier(self.round)
+            heard = self._catch_up(heard)
+            while self.round < self.training.rounds:
+                self._check_stop()
+                completed += self._one_round(heard_in=heard, stats_before=stats0)
+                stats0 = self.net.stats()
+                heard = self._last_heard
+            self._write_done()
+            self._stop.wait(cfg.linger_s)  # neighbours may still be fetching our last snapshot
+        except Stop:
+            self.log(f"[robot {self.robot_id}] stopped at round {self.round} (checkpoint of round "
+                     f"{self.round} kept)")
+        finally:
+            self._stop.set()
+            if self._heartbeat is not None:
+                self._heartbeat.join(timeout=2 * cfg.heartbeat_s + 1)
+            self._events.close()
+            self._telemetry.close()
+        return completed
+
+    def _one_round(self, heard_in: dict[int, ThetaSnapshot], stats_before: dict[str, Any]) -> int:
+        k = self.round
+        t0 = time.monotonic()
+        self._set_status(phase="training")
+        self.trainer.begin_round(k, {j: _to_torch(m) for j, m in heard_in.items()})
+        stats = self.trainer.train(self.training.steps_per_round, on_step=self._check_stop)
+        self.round = k + 1
+        t_compute = time.monotonic() - t0
+        self._publish_theta(self.round)
+        self._set_status(phase="waiting")
+        heard, waited = self._barrier(self.round)
+        self.trainer.end_round({j: _to_torch(m) for j, m in heard.items()})
+        heard = self._catch_up(heard)
+        self._last_heard = heard
+        self._checkpoint()
+
+        psnr = None
+        evaluate = self.cfg.eval_every > 0 and (self.round % self.cfg.eval_every == 0
+                                                or self.round == self.training.rounds)
+        if evaluate and self.setup.holdout is not None:
+            scores = self.trainer.evaluate(self.setup.holdout, frame="local", with_ssim=False)
+            psnr = sum(scores["psnr"]) / len(scores["psnr"])
+        net = self.net.stats()
+        bytes_in = {int(j): net["bytes_in"].get(j, 0) - stats_before["bytes_in"].get(j, 0) for j in net["bytes_in"]}
+        bytes_out = net["bytes_out_total"] - stats_before["bytes_out_total"]
+        with torch.no_grad():
+            pose = pose_summary(self.trainer.pose.matrix())
+        record = {
+            "robot": self.robot_id, "round": self.round, "time": time.time(), "monotonic": time.monotonic(),
+            "loss": stats.loss, "rgb_loss": stats.rgb_loss, "depth_loss": stats.depth_loss,
+            "batch_psnr": stats.batch_psnr, "psnr": psnr, "samples_per_ray": stats.samples_per_ray,
+            "pose": self.trainer.pose.matrix().detach().double().cpu().tolist(),
+            "pose_rotation_deg": pose["rotation_deg"], "pose_translation": pose["translation"],
+            "pose_scale": pose["scale"], "reference": self.membership.reference, "elected": self.elected,
+            "epoch": self.membership.epoch, "live_neighbours": sorted(self.membership.live_neighbours),
+            "heard": sorted(heard), "bytes_in": {str(j): b for j, b in bytes_in.items() if b},
+            "bytes_out": bytes_out, "seconds_compute": t_compute, "seconds_wait": waited,
+            "steps": stats.steps, "seconds_per_step": stats.seconds / max(stats.steps, 1),
+            "rejected": dict(self.rejected),
+        }
+        with self._state_lock:
+            self._telemetry.write(json.dumps(record) + "\n")
+            self._telemetry.flush()
+        self._set_status(phase="round_done", loss=stats.loss, psnr=psnr, heard=sorted(heard),
+                         bytes_in_total=net["bytes_in_total"], bytes_out_total=net["bytes_out_total"],
+                         seconds_compute=t_compute, seconds_wait=waited, pose7=pose["params7"])
+        live = sorted(self.membership.live_neighbours)
+        psnr_text = f"{psnr:5.2f} dB" if psnr is not None else "   n/a  "
+        self.log(
+            f"[robot {self.robot_id}] round {self.round:3d}/{self.training.rounds} | loss {stats.loss:.5f} | "
+            f"psnr {psnr_text} | pose {pose['rotation_deg']:6.2f} deg, |t| "
+            f"{math.sqrt(sum(x * x for x in pose['translation'])):.3f}, s {pose['scale']:.3f}"
+            f"{' (ref)' if self.elected else ''} | heard {sorted(heard)}/{live} | "
+            f"in {sum(bytes_in.values()) / 1e6:.1f} MB out {bytes_out / 1e6:.1f} MB | "
+            f"compute {t_compute:.1f} s wait {waited:.1f} s"
+        )
+        return 1
+
+    def _set_status(self, **fields: Any) -> None:
+        with self._state_lock:
+            self._last_status.update(fields)
+
+    def _write_done(self) -> None:
+        done = {"robot": self.robot_id, "rounds": self.round, "time": time.time(), "rejected": dict(self.rejected)}
+        (self.run_dir / "done.json").write_text(json.dumps(done, indent=2) + "\n")
+        self.log(f"[robot {self.robot_id}] done: {self.round} rounds")
+
+
+def load_for_eval(run_dir: str | Path, data_dir: str | Path, round: int | None = None):
+    """Rebuild a robot's trainer from its run folder (final checkpoint or ``rounds/<k>.pt``)."""
+    from agent.data.loaders import load_views
+
+    run_dir = Path(run_dir)
+    state = torch.load(run_dir / CHECKPOINT, map_location="cpu", weights_only=False)
+    training: SwarmTrainingConfig = state["training"]
+    views = load_views(data_dir)
+    setup = build_robot(int(state["robot_id"]), views, state["box_from_shared"], training)
+    trainer = setup.trainer
+    trainer.load_state_dict(state["trainer"])
+    if round is not None:
+        snap = torch.load(run_dir / "rounds" / f"{round:05d}.pt", map_location="cpu", weights_only=False)
+        trainer.field.load_state_dict(snap["field"])
+        trainer.grid.load_state_dict(snap["grid"])
+        trainer.pose.load_state_dict(snap["pose"])
+    return trainer

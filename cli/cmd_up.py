@@ -1,0 +1,69 @@
+"""``dinerf-agent up``: run one robot's daemon until the swarm's rounds are done."""
+
+from __future__ import annotations
+
+import signal
+import sys
+from pathlib import Path
+
+import typer
+
+from cli.errors import UserError, friendly_errors
+from cli.main import app
+
+
+def _log(line: str) -> None:
+    print(line, flush=True)
+
+
+@app.command()
+@friendly_errors
+def up(
+    robot_id: int = typer.Option(..., "--id", help="This robot's id (one of the robots listed in the swarm file)."),
+    data: Path = typer.Option(..., "--data", help="This robot's folder (transforms.json + images, from `split`)."),
+    swarm: Path = typer.Option(None, "--swarm", help="Swarm TOML (default: swarm.toml beside or inside --data)."),
+    run_dir: Path = typer.Option(None, "--run-dir", help="Checkpoints and telemetry (default: runs/<swarm>/robot<id>)."),
+    listen: list[str] = typer.Option([], "--listen", help="Zenoh endpoint to listen on (repeatable)."),
+    connect: list[str] = typer.Option([], "--connect", help="Zenoh endpoint to connect to (repeatable)."),
+    overrides: list[str] = typer.Option([], "--set", help="Override a swarm-file setting, e.g. --set training.rounds=5 (repeatable)."),
+) -> None:
+    """Join the swarm and train: one robot's daemon (resumes from --run-dir if it holds a checkpoint)."""
+    from agent.daemon import Daemon
+    from agent.data.folder import read_scene
+    from agent.data.loaders import load_views
+    from cli.swarm_file import find_swarm_file, load_swarm_file
+    from protocol.keys import Keys
+    from protocol.transport import TransportError, ZenohTransport
+
+    if not data.is_dir():
+        raise UserError(f"--data {data}: no such folder (expected a robot folder written by `dinerf-agent split`)")
+    swarm_path = swarm or find_swarm_file(data)
+    if swarm_path is None:
+        raise UserError(f"no --swarm given and no swarm.toml beside or inside {data}")
+    cfg, base_dir = load_swarm_file(swarm_path, overrides)
+    if robot_id not in cfg.swarm.robots:
+        raise UserError(f"--id {robot_id} is not one of the swarm's robots {cfg.swarm.robots} ({swarm_path})")
+    scene = read_scene(base_dir / cfg.swarm.scene)
+    views = load_views(data)
+    run_dir = run_dir or Path("runs") / cfg.swarm.name / f"robot{robot_id}"
+    transport_cfg = cfg.transport_for(robot_id, listen, connect)
+
+    try:
+        transport = ZenohTransport(transport_cfg, Keys(cfg.swarm.name), robot_id).open()
+    except TransportError as e:
+        raise UserError(f"cannot open the Zenoh session: {e}") from None
+    daemon = None
+    try:
+        daemon = Daemon(robot_id, views, scene.box_from_shared, cfg.identity(), cfg.training, cfg.daemon,
+                        transport, run_dir, log=_log)
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: daemon.stop())
+        _log(f"[robot {robot_id}] up: swarm '{cfg.swarm.name}' ({cfg.swarm.topology}: "
+             f"neighbours {sorted(cfg.topology().neighbours(robot_id))}), {len(views)} views, "
+             f"listen {transport_cfg.listen}, connect {transport_cfg.connect}, run dir {run_dir}")
+        daemon.run()
+    except RuntimeError as e:  # e.g. an unusable checkpoint
+        raise UserError(str(e)) from None
+    finally:
+        transport.close()
+    sys.stdout.flush()
