@@ -20,6 +20,7 @@ COMMAND_MODULES = [
     "cli.cmd_data",
     "cli.cmd_train",
     "cli.cmd_up",
+    "cli.cmd_scenario",
 ]
 
 

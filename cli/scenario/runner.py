@@ -41,7 +41,7 @@ from cli.config import to_dict
 from cli.scenario.spec import ScenarioSpec, spec_to_dict
 from cli.scenario.tomlout import dumps
 
-__all__ = ["ScenarioRunner", "RunOutcome", "RobotProcess", "prepare_split", "free_ports", "UpCommand"]
+__all__ = ["ScenarioRunner", "RunOutcome", "RobotProcess", "prepare_split", "free_ports", "swarm_document", "UpCommand"]
 
 # argv of one robot's daemon, without the namespace prefix: (robot id, data dir, swarm toml, run dir, listen, connect)
 UpCommand = Callable[[int, Path, Path, Path, list[str], list[str]], list[str]]
@@ -90,6 +90,30 @@ def prepare_split(spec: ScenarioSpec, out: Path) -> dict:
         "mean_overlap": result.mean_overlap,
         "eval_views": len(result.eval_indices),
         "reference": result.reference_id,
+    }
+
+
+def swarm_document(spec: ScenarioSpec, scene: str, endpoints: dict[int, str] | None, name: str) -> dict:
+    """The swarm TOML (as a dict) every robot of a scenario gets; per-robot snapshots always on."""
+    daemon = dict(spec.daemon)
+    daemon.setdefault("threads", spec.run.threads)
+    daemon["keep_rounds"] = True  # the report evaluates rounds/<k>.pt
+    network = dict(spec.network)
+    network.setdefault("multicast_scouting", False)
+    if endpoints:
+        network["endpoints"] = {str(k): v for k, v in endpoints.items()}
+    return {
+        "swarm": {
+            "name": name,
+            "robots": spec.ids,
+            "topology": spec.topology.kind,
+            "edges": [list(e) for e in spec.topology.edges] if spec.topology.edges is not None else None,
+            "hub": spec.topology.hub,
+            "scene": scene,
+        },
+        "network": network,
+        "training": to_dict(spec.training),
+        "daemon": daemon,
     }
 
 
@@ -184,29 +208,9 @@ class ScenarioRunner:
             r.run_dir.mkdir(parents=True, exist_ok=True)
 
     def _swarm_toml(self, endpoints: dict[int, str] | None) -> Path:
-        s = self.spec
-        daemon = dict(s.daemon)
-        daemon.setdefault("threads", s.run.threads)
-        daemon["keep_rounds"] = True  # the report evaluates rounds/<k>.pt
-        network = dict(s.network)
-        network.setdefault("multicast_scouting", False)
-        if endpoints:
-            network["endpoints"] = {str(k): v for k, v in endpoints.items()}
-        doc = {
-            "swarm": {
-                "name": f"{s.name}-{os.getpid()}-{int(time.time()) % 100000}",
-                "robots": s.ids,
-                "topology": s.topology.kind,
-                "edges": [list(e) for e in s.topology.edges] if s.topology.edges is not None else None,
-                "hub": s.topology.hub,
-                "scene": "data/scene.json",
-            },
-            "network": network,
-            "training": to_dict(s.training),
-            "daemon": daemon,
-        }
+        doc = swarm_document(self.spec, "data/scene.json", endpoints, f"{self.spec.name}-{os.getpid()}-{int(time.time()) % 100000}")
         path = self.out / "swarm.toml"
-        path.write_text(f"# written by `dinerf-agent scenario run` for scenario {s.name!r}\n" + dumps(doc))
+        path.write_text(f"# written by `dinerf-agent scenario run` for scenario {self.spec.name!r}\n" + dumps(doc))
         return path
 
     def _setup_network(self) -> None:

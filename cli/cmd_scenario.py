@@ -1,0 +1,133 @@
+"""``dinerf-agent scenario ...``: run named swarm experiments, report on them, export them to compose."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import typer
+
+from cli.errors import UserError, friendly_errors
+from cli.main import app
+
+scenario_app = typer.Typer(help="Named swarm experiments: run (loopback or network namespaces), report, compose.",
+                           no_args_is_help=True)
+app.add_typer(scenario_app, name="scenario")
+
+SCENARIO_HELP = "A scenario name (a folder of scenarios/) or a path to a scenario folder or scenario.toml."
+
+
+def _load(name: str, overrides: list[str]):
+    from cli.config import apply_overrides
+    from cli.scenario.spec import find_scenario, load_scenario
+
+    spec = load_scenario(find_scenario(name))
+    if overrides:
+        path = spec.path
+        spec = apply_overrides(spec, overrides)
+        spec.path = path
+    return spec
+
+
+@scenario_app.command("list")
+@friendly_errors
+def list_cmd() -> None:
+    """Show the scenarios shipped in scenarios/."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from cli.config import ConfigError
+    from cli.scenario.spec import list_scenarios, load_scenario
+
+    table = Table(title="scenarios (dinerf-agent scenario run NAME)")
+    for col in ("name", "robots", "topology", "data", "rounds x steps", "faults", "mode", "what"):
+        table.add_column(col)
+    for folder in list_scenarios():
+        try:
+            s = load_scenario(folder)
+        except (ConfigError, ValueError) as e:
+            table.add_row(folder.name, "", "", "", "", "", "", f"[red]invalid: {e}[/red]")
+            continue
+        f = s.faults
+        faults = ", ".join(f"{len(getattr(f, k))} {k}" for k in ("kill", "restart", "cut", "netem") if getattr(f, k)) or "-"
+        table.add_row(s.name, str(s.robots), s.topology.kind, s.dataset if len(s.dataset) < 40 else "..." + s.dataset[-37:],
+                      f"{s.training.rounds} x {s.training.steps_per_round}", faults, s.run.mode, s.description[:60])
+    Console().print(table)
+
+
+@scenario_app.command("run")
+@friendly_errors
+def run_cmd(
+    name: str = typer.Argument(..., help=SCENARIO_HELP),
+    mode: str = typer.Option(None, "--mode", help="local (loopback, any user) | netns (root: a namespace per robot). Default: the scenario's."),
+    out: Path = typer.Option(None, "--out", help="Output folder (default: runs/scenarios/<name>/<time>)."),
+    overrides: list[str] = typer.Option([], "--set", help="Override a scenario setting, e.g. --set training.rounds=4 (repeatable)."),
+    report: bool = typer.Option(True, "--report/--no-report", help="Evaluate the run and write report.md/json + PNGs."),
+) -> None:
+    """Run a scenario: split the data, start one daemon per robot, apply the faults, write the report."""
+    from cli.scenario.netns import NetnsError, netns_unavailable_reason
+    from cli.scenario.report import build_report
+    from cli.scenario.runner import ScenarioRunner
+
+    spec = _load(name, overrides)
+    mode = mode or spec.run.mode
+    spec.check_mode(mode)
+    if mode == "netns" and (reason := netns_unavailable_reason()):
+        raise UserError(f"--mode netns: {reason}")
+    if spec.needs_files():
+        spec.resolved_dataset()  # a missing dataset is an error now, not after the set-up
+    out = out or Path("runs") / "scenarios" / spec.name / time.strftime("%Y%m%d-%H%M%S")
+    if out.exists() and any(out.iterdir()):
+        raise UserError(f"--out {out}: folder is not empty; choose another")
+    typer.echo(f"[scenario] {spec.name} ({mode}) -> {out}")
+    try:
+        outcome = ScenarioRunner(spec, out, mode=mode, echo=typer.echo).run()
+    except NetnsError as e:  # the namespaces are already gone: the runner cleans up before re-raising
+        raise UserError(f"network set-up failed: {e}") from None
+    typer.echo(f"[scenario] {'completed' if outcome.ok else 'FAILED'}: {outcome.reason} ({outcome.seconds:.0f} s)")
+    if report and (out / "data" / "truth.json").is_file():
+        build_report(out, spec, echo=typer.echo)
+    if not outcome.ok:
+        raise typer.Exit(1)
+
+
+@scenario_app.command("report")
+@friendly_errors
+def report_cmd(out: Path = typer.Argument(..., help="The output folder of a `scenario run`.")) -> None:
+    """(Re)build the report of a run folder."""
+    from cli.scenario.report import build_report
+
+    if not (out / "run.json").is_file():
+        raise UserError(f"{out}: no run.json (not the output folder of `dinerf-agent scenario run`)")
+    build_report(out, echo=typer.echo)
+
+
+@scenario_app.command("compose")
+@friendly_errors
+def compose_cmd(
+    name: str = typer.Argument(..., help=SCENARIO_HELP),
+    out: Path = typer.Option(None, "--out", help="The compose file to write (default: scenarios/<name>/docker-compose.yml)."),
+    data: bool = typer.Option(False, "--data/--no-data", help="Also write the robot folders (the split) beside it, in data/."),
+) -> None:
+    """Write a docker-compose.yml: one service per robot, one network per link (and the swarm TOML it mounts)."""
+    from cli.scenario.compose import write_compose
+
+    spec = _load(name, [])
+    path = write_compose(spec, out or spec.path.parent / "docker-compose.yml", with_data=data)
+    typer.echo(f"wrote {path} and {path.parent / 'swarm.toml'}"
+               + ("" if data else f"; write the robot folders with --data (into {path.parent / 'data'})"))
+
+
+@scenario_app.command("cleanup")
+@friendly_errors
+def cleanup_cmd(
+    prefix: str = typer.Option("dinerf", help="Namespace prefix of scenario runs."),
+    force: bool = typer.Option(False, help="Also remove namespaces of runs whose process is still alive."),
+) -> None:
+    """Remove network namespaces left by crashed scenario runs (root)."""
+    from cli.scenario.netns import cleanup_stale, netns_unavailable_reason
+
+    if reason := netns_unavailable_reason():
+        raise UserError(reason)
+    removed = cleanup_stale(prefix, force=force)
+    typer.echo(f"removed {len(removed)} namespace(s)" + (": " + ", ".join(removed) if removed else ""))

@@ -1,0 +1,418 @@
+"""The report of one scenario run: what each robot achieved, round by round, against the truth.
+
+Per robot and per evaluated round k (from the daemon's ``rounds/<k>.pt`` snapshots, through
+``agent.daemon.load_for_eval``): PSNR/SSIM on the held-out views of the whole scene and on the
+held-out views only *other* robots saw (``agent.evaluation``), the pose error against
+``truth.json``, and the consensus disagreement ``||theta_i - mean|| / ||mean||`` among the robots
+that have a snapshot of that round. From telemetry: loss, bytes per link, seconds per step and
+waiting. From ``run.json``: the faults applied and when.
+
+With ``[baseline] enabled``, two points of comparison trained in this process after the run,
+with the same steps as each robot (``rounds * steps_per_round`` unless ``baseline.steps``):
+the centralised model on all robots' views with true poses, and each robot alone on its own
+views with its pose fixed to the truth (an upper bound for "alone": it gets the frame for free).
+
+Writes ``report.json``, ``report.md``, ``convergence.png`` and ``renders.png`` into the run folder.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import statistics
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+from cli.config import from_dict
+from cli.scenario.spec import ScenarioSpec
+
+__all__ = ["build_report", "load_run_spec"]
+
+
+def _mean(xs) -> float | None:
+    xs = [x for x in xs if x is not None and not (isinstance(x, float) and math.isnan(x))]
+    return statistics.fmean(xs) if xs else None
+
+
+def _nan_to_none(x: Any) -> Any:
+    if isinstance(x, float) and (math.isnan(x) or math.isinf(x)):
+        return None
+    if isinstance(x, dict):
+        return {k: _nan_to_none(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_nan_to_none(v) for v in x]
+    return x
+
+
+def load_run_spec(out: Path) -> ScenarioSpec:
+    """The spec a run was made with (from its run.json)."""
+    doc = json.loads((out / "run.json").read_text())
+    data = dict(doc["scenario"])
+    path = data.pop("path", None)
+    spec = from_dict(ScenarioSpec, data)
+    spec.path = Path(path) if path else None
+    return spec
+
+
+def _telemetry(run_dir: Path) -> list[dict]:
+    path = run_dir / "telemetry.jsonl"
+    if not path.is_file():
+        return []
+    out = []
+    for line in path.read_text().splitlines():
+        try:
+            out.append(json.loads(line))
+        except json.JSONDecodeError:
+            pass  # a line cut by SIGKILL
+    return out
+
+
+def _snapshot_rounds(run_dir: Path) -> list[int]:
+    return sorted(int(p.stem) for p in (run_dir / "rounds").glob("*.pt") if p.stem.isdigit())
+
+
+def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[str], None] = print) -> dict:
+    """Evaluate a finished (or stopped) run in ``out`` and write the report files. Returns report.json's dict."""
+    import torch
+
+    from agent.consensus import disagreement
+    from agent.daemon import load_for_eval
+    from agent.evaluation import EvalSet, evaluate_robot
+
+    out = Path(out)
+    spec = spec or load_run_spec(out)
+    run = json.loads((out / "run.json").read_text())
+    torch.set_num_threads(spec.report.threads)
+    data_dir = out / "data"
+    evalset = EvalSet.from_dir(data_dir)
+    ids = spec.ids
+    t0 = time.monotonic()
+
+    telemetry = {i: _telemetry(out / "robots" / str(i)) for i in ids}
+    snaps = {i: _snapshot_rounds(out / "robots" / str(i)) for i in ids}
+    all_rounds = sorted({k for ks in snaps.values() for k in ks})
+    last = all_rounds[-1] if all_rounds else None
+    chosen = [k for k in all_rounds if k % spec.report.eval_every == 0 or k == last]
+    echo(f"[report] evaluating {len(chosen)} rounds x {len(ids)} robots on {len(evalset.views)} held-out views")
+
+    per_round: dict[int, dict[int, dict]] = {i: {} for i in ids}
+    finals: dict[int, Any] = {}
+    for k in chosen:
+        thetas = {}
+        for i in ids:
+            if k not in snaps[i]:
+                continue
+            trainer = load_for_eval(out / "robots" / str(i), data_dir / f"robot{i}", round=k)
+            ev = evaluate_robot(trainer, evalset, i, with_ssim=spec.report.ssim)
+            per_round[i][k] = {
+                "psnr": ev.psnr_all, "ssim": ev.ssim_all if spec.report.ssim else None,
+                "psnr_others_only": ev.psnr_others, "ssim_others_only": ev.ssim_others if spec.report.ssim else None,
+                "rotation_error_deg": ev.pose.get("rotation_deg"), "translation_error": ev.pose.get("translation"),
+                "scale_error_rel": ev.pose.get("scale_rel"),
+            }
+            thetas[i] = [t for _, t in sorted(trainer.theta().items())]
+            if k == snaps[i][-1]:
+                finals[i] = trainer
+        if len(thetas) >= 2:
+            dis = disagreement(list(thetas.values()))
+            for i, d in zip(thetas, dis):
+                per_round[i][k]["disagreement"] = d
+        del thetas
+
+    # telemetry: loss, bytes, time per step ...
+    robots: dict[str, Any] = {}
+    links: dict[str, int] = {}
+    for i in ids:
+        recs = telemetry[i]
+        by_round: dict[int, dict] = {}
+        for r in recs:
+            k = int(r.get("round", 0))
+            by_round[k] = {
+                "loss": r.get("loss"), "own_psnr": r.get("psnr"), "heard": r.get("heard"),
+                "live_neighbours": r.get("live_neighbours"), "reference": r.get("reference"),
+                "bytes_in": r.get("bytes_in", {}), "bytes_out": r.get("bytes_out"),
+                "seconds_compute": r.get("seconds_compute"), "seconds_wait": r.get("seconds_wait"),
+                "seconds_per_step": r.get("seconds_per_step"), "steps": r.get("steps"), "time": r.get("time"),
+            }
+            for sender, b in (r.get("bytes_in") or {}).items():
+                key = f"{sender}->{i}"
+                links[key] = links.get(key, 0) + int(b)
+        rounds_doc = {}
+        for k in sorted(set(by_round) | set(per_round[i])):
+            rounds_doc[str(k)] = {**by_round.get(k, {}), **per_round[i].get(k, {})}
+        final_k = max(per_round[i]) if per_round[i] else None
+        sps = [r.get("seconds_per_step") for r in recs]
+        robots[str(i)] = {
+            "rounds": rounds_doc,
+            "final_round": final_k,
+            "final": per_round[i].get(final_k, {}) if final_k is not None else {},
+            "seconds_per_step_mean": _mean(sps),
+            "seconds_compute_total": sum(r.get("seconds_compute") or 0 for r in recs),
+            "seconds_wait_total": sum(r.get("seconds_wait") or 0 for r in recs),
+            "bytes_out_total": sum(r.get("bytes_out") or 0 for r in recs),
+            "rejected": (recs[-1].get("rejected") if recs else {}) or {},
+            "rounds_logged": len(recs),
+            "starts": run.get("robots", {}).get(str(i), {}).get("starts"),
+            "state": run.get("robots", {}).get(str(i), {}).get("state"),
+        }
+
+    faults = [e for e in run.get("events", []) if e.get("event") == "fault"]
+    report: dict[str, Any] = {
+        "scenario": spec.name,
+        "description": spec.description,
+        "mode": run.get("mode"),
+        "ok": run.get("ok"),
+        "reason": run.get("reason"),
+        "seconds_run": run.get("seconds"),
+        "split": run.get("split"),
+        "dataset": spec.dataset,
+        "robots": robots,
+        "links_bytes": links,
+        "faults": faults,
+        "heldout_views": len(evalset.views),
+        "notes": [],
+    }
+    if spec.split.depth_prior == "scaled":
+        report["notes"].append("depth prior: the true depth with a random per-image scale/shift (synthetic)")
+
+    if spec.baseline.enabled:
+        report["baseline"] = _baselines(spec, out, evalset, echo)
+    report["summary"] = _summary(report, ids)
+    report["seconds_report"] = time.monotonic() - t0
+
+    _plots(report, ids, out / "convergence.png")
+    _render_sheet(finals, evalset, spec, out / "renders.png", report.get("baseline", {}).get("_trainer"))
+    report.get("baseline", {}).pop("_trainer", None)
+    report = _nan_to_none(report)
+    (out / "report.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
+    (out / "report.md").write_text(_markdown(report, spec, ids))
+    echo(f"[report] wrote {out / 'report.md'} ({report['seconds_report']:.0f} s)")
+    return report
+
+
+# --------------------------------------------------------------------------------------------
+# Points of comparison
+# --------------------------------------------------------------------------------------------
+
+
+def _baselines(spec: ScenarioSpec, out: Path, evalset, echo) -> dict:
+    from agent.baseline import evaluate_heldout, train_baseline
+    from agent.data.folder import read_scene
+    from agent.data.loaders import load_views
+    from agent.evaluation import evaluate_robot
+    from agent.swarm import build_robot
+
+    steps = spec.baseline.steps or spec.training.total_steps
+    result: dict[str, Any] = {"steps": steps}
+    t = time.monotonic()
+    echo(f"[report] baseline: centralised model, {steps} steps")
+    views = load_views(spec.resolved_dataset(), width=spec.width)
+    cfg = dataclasses.replace(spec.training.train, total_steps=steps, seed=spec.training.seed, init_seed=spec.training.seed)
+    run = train_baseline(views, cfg, spec.split.holdout_every)
+    scores = evaluate_heldout(run, views, with_ssim=spec.report.ssim)
+    result["centralised"] = {"psnr": _mean(scores["psnr"]), "ssim": _mean(scores["ssim"]),
+                             "seconds": time.monotonic() - t, "views": len(scores["psnr"])}
+    result["_trainer"] = run.trainer
+    if spec.baseline.alone:
+        scene = read_scene(out / "data")
+        alone = {}
+        for i in spec.ids:
+            t = time.monotonic()
+            echo(f"[report] baseline: robot {i} alone, {steps} steps")
+            rviews = load_views(out / "data" / f"robot{i}")
+            tcfg = dataclasses.replace(spec.training, rounds=1, steps_per_round=steps)
+            setup = build_robot(i, rviews, scene.box_from_shared, tcfg, initial_pose=evalset.T_shared_from_local(i).float(),
+                                is_reference=True)  # is_reference: pose frozen at the truth
+            setup.trainer.train(steps)
+            ev = evaluate_robot(setup.trainer, evalset, i, with_ssim=spec.report.ssim)
+            alone[str(i)] = {"psnr": ev.psnr_all, "ssim": ev.ssim_all if spec.report.ssim else None,
+                             "psnr_others_only": ev.psnr_others,
+                             "ssim_others_only": ev.ssim_others if spec.report.ssim else None,
+                             "seconds": time.monotonic() - t}
+        result["alone"] = alone
+    return result
+
+
+def _summary(report: dict, ids: list[int]) -> dict:
+    finals = {i: report["robots"][str(i)]["final"] for i in ids}
+    s: dict[str, Any] = {
+        "mean_psnr": _mean(f.get("psnr") for f in finals.values()),
+        "mean_psnr_others_only": _mean(f.get("psnr_others_only") for f in finals.values()),
+        "max_rotation_error_deg": max((f.get("rotation_error_deg") or 0.0 for f in finals.values()), default=None),
+        "max_translation_error": max((f.get("translation_error") or 0.0 for f in finals.values()), default=None),
+    }
+    b = report.get("baseline")
+    if b:
+        s["centralised_psnr"] = b["centralised"]["psnr"]
+        if s["mean_psnr"] is not None:
+            s["gap_to_centralised_db"] = b["centralised"]["psnr"] - s["mean_psnr"]
+        if "alone" in b:
+            gains = {}
+            for i in ids:
+                sw, al = finals[i].get("psnr_others_only"), b["alone"][str(i)].get("psnr_others_only")
+                if sw is not None and al is not None and not math.isnan(sw) and not math.isnan(al):
+                    gains[str(i)] = sw - al
+            s["gain_over_alone_others_only_db"] = gains
+            s["min_gain_over_alone_others_only_db"] = min(gains.values()) if gains else None
+    return s
+
+
+# --------------------------------------------------------------------------------------------
+# Pictures
+# --------------------------------------------------------------------------------------------
+
+
+def _plots(report: dict, ids: list[int], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [("psnr", "PSNR, all held-out views (dB)"), ("psnr_others_only", "PSNR, views only others saw (dB)"),
+              ("disagreement", "consensus disagreement"), ("rotation_error_deg", "rotation error (deg)"),
+              ("translation_error", "translation error (scene units)"), ("loss", "training loss")]
+    fig, axes = plt.subplots(2, 3, figsize=(15, 8))
+    for ax, (key, title) in zip(axes.flat, panels):
+        for i in ids:
+            rounds = report["robots"][str(i)]["rounds"]
+            xs = [int(k) for k, v in rounds.items() if isinstance(v.get(key), (int, float)) and not math.isnan(v[key])]
+            ys = [rounds[str(k)][key] for k in xs]
+            if xs:
+                ax.plot(xs, ys, marker="o", ms=3, label=f"robot {i}")
+        b = report.get("baseline")
+        if b and key == "psnr":
+            ax.axhline(b["centralised"]["psnr"], color="k", ls="--", label="centralised")
+        if b and "alone" in b and key in ("psnr", "psnr_others_only"):
+            for n, i in enumerate(ids):
+                v = b["alone"][str(i)].get(key)
+                if v is not None and not math.isnan(v):
+                    ax.axhline(v, color=f"C{n}", ls=":", lw=1, label=f"robot {i} alone" if key == "psnr_others_only" else None)
+        for f in report.get("faults", []):
+            ax.axvline(f.get("swarm_round", 0), color="red", alpha=0.3, lw=1)
+        if key in ("disagreement", "loss"):
+            ax.set_yscale("log")
+        ax.set_title(title)
+        ax.set_xlabel("round")
+        ax.grid(alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
+    fig.suptitle(f"{report['scenario']}: convergence (red lines: faults)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _render_sheet(finals: dict, evalset, spec: ScenarioSpec, path: Path, baseline_trainer=None) -> None:
+    """Rows: ground truth, [centralised], each robot (its final model, in the shared frame); columns: views."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import torch
+
+    n = min(spec.report.render_views, len(evalset.views))
+    if n == 0 or not finals:
+        return
+    m = len(evalset.views)
+    idx = sorted({round(j * m / n) % m for j in range(n)})
+    gt = evalset.views.rgb(1.0)
+    cams = evalset.shared_cameras()
+    w, h = evalset.views.width, evalset.views.height
+    rows: list[tuple[str, list]] = [("truth", [gt[j].numpy() for j in idx])]
+    with torch.no_grad():
+        if baseline_trainer is not None:
+            rows.append(("centralised", [baseline_trainer.render(evalset.views.c2w[j], evalset.views.intrinsics[j], w, h)["rgb"].cpu().numpy() for j in idx]))
+        for i in sorted(finals):
+            rows.append((f"robot {i}", [finals[i].render(cams[j], evalset.views.intrinsics[j], w, h)["rgb"].cpu().numpy() for j in idx]))
+    fig, axes = plt.subplots(len(rows), len(idx), figsize=(2.2 * len(idx), 2.2 * len(rows)), squeeze=False)
+    for r, (label, imgs) in enumerate(rows):
+        for c, img in enumerate(imgs):
+            ax = axes[r][c]
+            ax.imshow(img.clip(0, 1))
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if c == 0:
+                ax.set_ylabel(label)
+            if r == 0:
+                seen = evalset.seen_by[idx[c]]
+                ax.set_title(f"{evalset.views.names[idx[c]]}\nseen by {seen or 'nobody'}", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------------------------
+# Markdown
+# --------------------------------------------------------------------------------------------
+
+
+def _f(x, fmt=".2f") -> str:
+    return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, fmt)
+
+
+def _markdown(report: dict, spec: ScenarioSpec, ids: list[int]) -> str:
+    s = report["summary"]
+    lines = [f"# Scenario `{spec.name}`", ""]
+    if spec.description:
+        lines += [spec.description, ""]
+    sp = report.get("split") or {}
+    lines += [
+        f"- outcome: **{'completed' if report['ok'] else 'FAILED'}** ({report['reason']}), "
+        f"{_f(report['seconds_run'], '.0f')} s, mode `{report['mode']}`",
+        f"- data: `{spec.dataset}` at {sp.get('resolution')}, {spec.robots} robots, mean overlap "
+        f"{_f(100 * sp['mean_overlap'] if sp.get('mean_overlap') is not None else None, '.0f')}%, frames `{spec.split.frame}`, "
+        f"topology `{spec.topology.kind}` ({', '.join(f'{a}-{b}' for a, b in spec.links)})",
+        f"- training: {spec.training.rounds} rounds x {spec.training.steps_per_round} steps, rho0 "
+        f"{spec.training.consensus.rho0:g}, pose `{spec.training.train.pose.mode}`",
+        f"- evaluation: {report['heldout_views']} held-out views of the whole scene (every "
+        f"{spec.split.holdout_every}th); 'others only' = held-out views outside the robot's own sector",
+        "",
+    ]
+    for note in report.get("notes", []):
+        lines.append(f"- note: {note}")
+    lines += ["## Final state per robot", "",
+              "| robot | round | PSNR all | SSIM all | PSNR others-only | rot err (deg) | trans err | disagreement | s/step | wait (s) | MB out | starts |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for i in ids:
+        r = report["robots"][str(i)]
+        f = r["final"]
+        lines.append(
+            f"| {i} | {r['final_round']} | {_f(f.get('psnr'))} | {_f(f.get('ssim'), '.3f')} | {_f(f.get('psnr_others_only'))} | "
+            f"{_f(f.get('rotation_error_deg'))} | {_f(f.get('translation_error'), '.3f')} | {_f(f.get('disagreement'), '.2e')} | "
+            f"{_f(r['seconds_per_step_mean'], '.3f')} | {_f(r['seconds_wait_total'], '.1f')} | "
+            f"{_f(r['bytes_out_total'] / 1e6, '.1f')} | {r['starts']} |"
+        )
+    lines += ["", f"Mean PSNR {_f(s['mean_psnr'])} dB (others-only {_f(s['mean_psnr_others_only'])} dB); "
+              f"worst pose error {_f(s['max_rotation_error_deg'])} deg / {_f(s['max_translation_error'], '.3f')}.", ""]
+    b = report.get("baseline")
+    if b:
+        lines += ["## Comparison (same steps per model)", "",
+                  f"Centralised model (all views, true poses, {b['steps']} steps): PSNR **{_f(b['centralised']['psnr'])}** dB, "
+                  f"SSIM {_f(b['centralised']['ssim'], '.3f')}; swarm mean {_f(s['mean_psnr'])} dB "
+                  f"(gap {_f(s.get('gap_to_centralised_db'))} dB).", ""]
+        if "alone" in b:
+            lines += ["| robot | swarm PSNR all | alone PSNR all | swarm others-only | alone others-only | gain others-only (dB) |",
+                      "|---|---|---|---|---|---|"]
+            for i in ids:
+                f, a = report["robots"][str(i)]["final"], b["alone"][str(i)]
+                gain = s.get("gain_over_alone_others_only_db", {}).get(str(i))
+                lines.append(f"| {i} | {_f(f.get('psnr'))} | {_f(a.get('psnr'))} | {_f(f.get('psnr_others_only'))} | "
+                             f"{_f(a.get('psnr_others_only'))} | {_f(gain)} |")
+            lines += ["", "'Alone' trains on the robot's own views only, with its pose fixed to the truth.", ""]
+    lines += ["## Faults applied", ""]
+    if report["faults"]:
+        lines += ["| time (s) | swarm round | fault | rounds done per robot |", "|---|---|---|---|"]
+        for e in report["faults"]:
+            lines.append(f"| {_f(e.get('time'), '.1f')} | {e.get('swarm_round')} | {e.get('description')} | {e.get('robot_rounds')} |")
+    else:
+        lines.append("none")
+    lines += ["", "## Bytes per link (received, whole run)", ""]
+    if report["links_bytes"]:
+        lines += ["| link | MB |", "|---|---|"] + [f"| {k} | {v / 1e6:.1f} |" for k, v in sorted(report["links_bytes"].items())]
+    else:
+        lines.append("none recorded")
+    lines += ["", "## Convergence", "", "![convergence](convergence.png)", "", "## Renders (held-out views, shared frame)", "",
+              "![renders](renders.png)", ""]
+    return "\n".join(lines)
