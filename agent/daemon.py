@@ -430,6 +430,7 @@ class Daemon:
             self._publish_theta(self.round)
             heard, _ = self._barrier(self.round)
             heard = self._catch_up(heard)
+            self.mailbox.advance(self.round)
             while self.round < self.training.rounds:
                 self._check_stop()
                 completed += self._one_round(heard_in=heard, stats_before=stats0)
@@ -459,8 +460,10 @@ class Daemon:
         self._publish_theta(self.round)
         self._set_status(phase="waiting")
         heard, waited = self._barrier(self.round)
+        self._apply_reference()  # a failover seen while waiting takes effect now, not next round
         self.trainer.end_round({j: _to_torch(m) for j, m in heard.items()})
         heard = self._catch_up(heard)
+        self.mailbox.advance(self.round)  # slide the window: keeps accepting up to round + max_ahead
         self._last_heard = heard
         self._checkpoint()
 

@@ -31,6 +31,8 @@ def split(
     images_only: bool = typer.Option(False, help="Write robot images without poses (robots run their own SfM)."),
     seed: int = typer.Option(0, help="Seed of the random frames and depth scale/shift."),
     force: bool = typer.Option(False, help="Replace a previous split in --out."),
+    topology: str = typer.Option("full", help="Topology written to swarm.toml: full | ring | star | line."),
+    port_base: int = typer.Option(7500, help="swarm.toml endpoints: robot i listens on tcp/127.0.0.1:<base+i>."),
 ) -> None:
     """Split a dataset into N robot folders by sectors of view direction (Di-NeRF's setting)."""
     from agent.data.loaders import load_views
@@ -50,6 +52,13 @@ def split(
     views = load_views(data, width=width)
     result = split_views(views, cfg)
     write_split(result, out, overwrite=force)
+    from cli.swarm_file import SWARM_FILE, loopback_endpoints, write_swarm_file
+
+    ids = sorted(result.robots)
+    name = "".join(c if c.isalnum() or c in "-_" else "-" for c in Path(out).resolve().name) or "swarm"
+    write_swarm_file(Path(out) / SWARM_FILE, name, ids, topology,
+                     network={"endpoints": loopback_endpoints(ids, port_base)},
+                     header="written by `dinerf-agent split`; edit freely (see cli/swarm_file.py)")
 
     console = Console()
     table = Table(title=f"{len(views)} views of {data} -> {out}")
@@ -75,6 +84,8 @@ def split(
         + (f", {sum(1 for s in result.seen_by if len(s) == 0)} seen by no robot" if n_eval else "")
     )
     console.print(f"scene box: {result.box_source}; depth prior: {depth_prior}; truth.json is for evaluation only")
+    console.print(f"swarm.toml: {topology} topology, loopback ports {port_base + ids[0]}..{port_base + ids[-1]}; "
+                  f"start each robot with: dinerf-agent up --id <id> --data {out}/robot<id>")
 
 
 @app.command()

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import importlib
-import sys
 
 import typer
 
@@ -33,6 +32,3 @@ def main() -> None:
     _register()
     app()
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -20,6 +20,7 @@
 
 from __future__ import annotations
 
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -108,3 +109,42 @@ def find_swarm_file(data_dir: Path) -> Path | None:
         if candidate.is_file():
             return candidate
     return None
+
+
+def write_swarm_file(
+    path: Path,
+    name: str,
+    robots: list[int],
+    topology: str = "full",
+    *,
+    edges: list[list[int]] | None = None,
+    hub: int | None = None,
+    scene: str = "scene.json",
+    network: dict | None = None,
+    training: dict | None = None,
+    daemon: dict | None = None,
+    header: str = "",
+) -> Path:
+    """Write a swarm TOML that :func:`load_swarm_file` reads back (validated before writing)."""
+    from cli.scenario.tomlout import dumps
+
+    doc = {
+        "swarm": {"name": name, "robots": list(robots), "topology": topology, "edges": edges, "hub": hub,
+                  "scene": scene},
+        "network": network or {},
+        "training": training or {},
+        "daemon": daemon or {},
+    }
+    text = (f"# {header}\n" if header else "") + dumps(doc)
+    try:
+        validate_swarm(name)
+        from_dict(SwarmFile, tomllib.loads(text), "").topology()
+    except (ValueError, ConfigError) as e:
+        raise ConfigError(f"refusing to write an invalid swarm file {path}: {e}") from None
+    path.write_text(text)
+    return path
+
+
+def loopback_endpoints(robots: list[int], port_base: int) -> dict[str, str]:
+    """One TCP port per robot on 127.0.0.1 (local runs: every robot on this machine)."""
+    return {str(i): f"tcp/127.0.0.1:{port_base + i}" for i in robots}

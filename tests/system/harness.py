@@ -1,0 +1,182 @@
+"""Real swarms for tests: a tiny split, a swarm.toml, and one `dinerf-agent up` process per robot.
+
+Everything is real: separate processes, Zenoh sessions on loopback, SIGKILL for faults. Only the
+sizes are small (a 24x24 procedural scene, a 2^12 hash table, a few steps per round) so that a
+whole swarm runs in seconds on two cores.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+AGENT = [sys.executable, "-m", "cli"]
+
+TINY_TRAINING = {
+    "rounds": 5,
+    "steps_per_round": 8,
+    "seed": 3,
+    "holdout_every": 4,
+    "consensus": {"rho0": 0.05},
+    "train": {
+        "rays_per_step": 256,
+        "field": {"grid": {"log2_hashmap_size": 12, "num_levels": 8, "max_resolution": 128},
+                  "density_hidden": 32, "color_hidden": 32},
+        "occupancy": {"resolution": 32, "warmup_steps": 16, "update_every": 8},
+    },
+}
+
+
+def free_port_base(count: int) -> int:
+    """A base such that base+1 .. base+count are free TCP ports on loopback (best effort)."""
+    for _ in range(50):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            base = s.getsockname()[1]
+        if base + count + 1 >= 65535:
+            continue
+        ok = True
+        for i in range(1, count + 1):
+            with socket.socket() as s:
+                try:
+                    s.bind(("127.0.0.1", base + i))
+                except OSError:
+                    ok = False
+                    break
+        if ok:
+            return base
+    raise RuntimeError("no free port range")
+
+
+def merge(a: dict, b: dict) -> dict:
+    out = dict(a)
+    for k, v in b.items():
+        out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+@dataclass
+class Swarm:
+    root: Path
+    robots: list[int]
+    procs: dict[int, subprocess.Popen] = field(default_factory=dict)
+    logs: dict[int, Path] = field(default_factory=dict)
+
+    @property
+    def swarm_file(self) -> Path:
+        return self.root / "swarm.toml"
+
+    def run_dir(self, i: int) -> Path:
+        return self.root / "run" / f"robot{i}"
+
+    def start(self, i: int, extra_env: dict | None = None) -> subprocess.Popen:
+        log = self.root / f"robot{i}.log"
+        self.logs[i] = log
+        env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1", **(extra_env or {}))
+        cmd = AGENT + ["up", "--id", str(i), "--data", str(self.root / f"robot{i}"),
+                       "--run-dir", str(self.run_dir(i))]
+        p = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=open(log, "a"), stderr=subprocess.STDOUT)
+        self.procs[i] = p
+        return p
+
+    def start_all(self) -> None:
+        for i in self.robots:
+            self.start(i)
+
+    def kill(self, i: int) -> float:
+        """SIGKILL robot i; returns time.monotonic() of the kill (same clock as the robots' events)."""
+        t = time.monotonic()
+        self.procs[i].send_signal(signal.SIGKILL)
+        self.procs[i].wait(timeout=10)
+        return t
+
+    def telemetry(self, i: int) -> list[dict]:
+        path = self.run_dir(i) / "telemetry.jsonl"
+        if not path.is_file():
+            return []
+        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+    def events(self, i: int) -> list[dict]:
+        path = self.run_dir(i) / "events.jsonl"
+        if not path.is_file():
+            return []
+        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+    def done(self, i: int) -> dict | None:
+        path = self.run_dir(i) / "done.json"
+        return json.loads(path.read_text()) if path.is_file() else None
+
+    def wait_round(self, i: int, round_index: int, timeout: float = 120) -> None:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < timeout:
+            tel = self.telemetry(i)
+            if tel and tel[-1]["round"] >= round_index:
+                return
+            if self.procs[i].poll() is not None:
+                raise AssertionError(f"robot {i} exited early:\n{self.log_text(i)}")
+            time.sleep(0.1)
+        raise AssertionError(f"robot {i} did not reach round {round_index} in {timeout} s:\n{self.log_text(i)}")
+
+    def wait_all(self, robots: list[int] | None = None, timeout: float = 240) -> None:
+        for i in robots or list(self.procs):
+            try:
+                code = self.procs[i].wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                raise AssertionError(f"robot {i} did not finish in {timeout} s:\n{self.log_text(i)}") from None
+            assert code == 0, f"robot {i} exited with {code}:\n{self.log_text(i)}"
+
+    def log_text(self, i: int) -> str:
+        return self.logs[i].read_text()[-4000:] if i in self.logs and self.logs[i].is_file() else ""
+
+    def stop(self) -> None:
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGKILL)
+                p.wait(timeout=10)
+
+
+def make_swarm(tmp: Path, robots: int = 3, topology: str = "full", frame: str = "world",
+               training: dict | None = None, daemon: dict | None = None, views: int = 36) -> Swarm:
+    """Split a tiny procedural scene into robot folders and write the swarm.toml for them."""
+    from agent.data.loaders import load_views
+    from agent.data.split import SplitConfig, split_views, write_split
+    from cli.swarm_file import loopback_endpoints, write_swarm_file
+
+    root = tmp / "swarm"
+    result = split_views(load_views(f"procedural:views={views},width=24"),
+                         SplitConfig(robots=robots, overlap=0.2, frame=frame, seed=1))
+    write_split(result, root)
+    ids = sorted(result.robots)
+    daemon_cfg = {"startup_wait_s": 15.0, "round_timeout_s": 30.0, "linger_s": 1.0, "threads": 1}
+    write_swarm_file(root / "swarm.toml", f"test-{os.getpid()}-{int(time.time() * 1000) % 10**6}", ids, topology,
+                     network={"endpoints": loopback_endpoints(ids, free_port_base(max(ids)))},
+                     training=merge(TINY_TRAINING, training or {}),
+                     daemon=merge(daemon_cfg, daemon or {}))
+    return Swarm(root, ids)
+
+
+def simulate(swarm: Swarm, overrides: list[str] = ()):
+    """The in-process simulation of the same swarm (same seeds), with 1 torch thread like the daemons."""
+    import torch
+
+    from agent.data.folder import read_scene
+    from agent.data.loaders import load_views
+    from agent.swarm import Simulation
+    from cli.swarm_file import load_swarm_file
+
+    torch.set_num_threads(1)
+    cfg, base = load_swarm_file(swarm.swarm_file, list(overrides))
+    topo = cfg.topology()
+    views = {i: load_views(swarm.root / f"robot{i}") for i in cfg.swarm.robots}
+    scene = read_scene(base / cfg.swarm.scene)
+    sim = Simulation(views, {i: topo.neighbours(i) for i in views}, scene.box_from_shared, cfg.training)
+    sim.run()
+    return sim
