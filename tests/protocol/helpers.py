@@ -103,7 +103,6 @@ def malformed_cases() -> list[tuple[str, str, bytes, int]]:
     """
     good = valid_frame()
     spec = small_spec()
-    raw = raw_of(small_tensors())
     nan = small_tensors()
     nan["mlp.0.bias"][3] = np.nan
     inf = small_tensors()

@@ -15,7 +15,7 @@ from protocol.codec import Expectation, decode, encode, read_header
 from protocol.messages import (REJECT_REASONS, KeyframeSummary, ModelSpec, Rejected, Status,
                                ThetaSnapshot)
 from tests.protocol.helpers import (ROUND, SENDER, SWARM, expectation, keys, malformed_cases, reframe,
-                                    rle_zstd_frame, small_spec, small_tensors, snapshot, split_frame,
+                                    rle_zstd_frame, small_spec, snapshot, split_frame,
                                     valid_frame)
 
 

@@ -6,12 +6,9 @@ waiting on the network versus computing, failover latency.
 
 from __future__ import annotations
 
-import json
-import math
 import statistics
 import subprocess
 import sys
-import time
 
 import pytest
 import torch
