@@ -19,6 +19,7 @@ COMMAND_MODULES = [
     "cli.cmd_data",
     "cli.cmd_train",
     "cli.cmd_up",
+    "cli.cmd_status",
     "cli.cmd_scenario",
 ]
 

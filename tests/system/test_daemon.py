@@ -155,3 +155,22 @@ def test_reference_failover_keeps_the_frame_and_a_restarted_robot_resumes(tmp_pa
     print(f"robot 1 resumed at round {resumed[-1]['from_round']}, then {[(e['event'], e['to_round']) for e in joined]}")
     resigned = [e for e in swarm.events(2) if e["event"] == "reference_resigned"]
     assert resigned, "robot 2 should hand the reference back to robot 1"
+
+
+def test_status_command_shows_every_robot_live(tmp_path):
+    import os
+    import re
+
+    swarm = make_swarm(tmp_path, robots=2, topology="full", training={"rounds": 30})
+    try:
+        swarm.start_all()
+        swarm.wait_round(1, 1)
+        out = subprocess.run([sys.executable, "-m", "cli", "status", "--swarm", str(swarm.swarm_file), "--once", "3"],
+                             cwd=REPO, capture_output=True, text=True, timeout=60, env=dict(os.environ, COLUMNS="200"))
+    finally:
+        swarm.stop()
+    assert out.returncode == 0, out.stderr
+    print(out.stdout)
+    assert "2 robot(s) heard" in out.stdout
+    rows = {int(m[1]): int(m[2]) for m in re.finditer(r"^│\s+(\d+)\s+│\s+(\d+)\s+│", out.stdout, re.M)}
+    assert sorted(rows) == [1, 2] and all(r >= 1 for r in rows.values()), out.stdout
