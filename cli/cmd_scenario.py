@@ -40,18 +40,20 @@ def list_cmd() -> None:
     from cli.scenario.spec import list_scenarios, load_scenario
 
     table = Table(title="scenarios (dinerf-agent scenario run NAME)")
-    for col in ("name", "robots", "topology", "data", "rounds x steps", "faults", "mode", "what"):
+    table.add_column("name", no_wrap=True)
+    for col in ("robots", "topology", "data", "rounds x steps", "faults", "mode"):
         table.add_column(col)
     for folder in list_scenarios():
         try:
             s = load_scenario(folder)
         except (ConfigError, ValueError) as e:
-            table.add_row(folder.name, "", "", "", "", "", "", f"[red]invalid: {e}[/red]")
+            table.add_row(folder.name, "", "", f"[red]invalid: {e}[/red]", "", "", "")
             continue
         f = s.faults
         faults = ", ".join(f"{len(getattr(f, k))} {k}" for k in ("kill", "restart", "cut", "netem") if getattr(f, k)) or "-"
-        table.add_row(s.name, str(s.robots), s.topology.kind, s.dataset if len(s.dataset) < 40 else "..." + s.dataset[-37:],
-                      f"{s.training.rounds} x {s.training.steps_per_round}", faults, s.run.mode, s.description[:60])
+        data = s.dataset.split(":")[0] if s.dataset.startswith("procedural") else Path(s.dataset).name
+        table.add_row(s.name, str(s.robots), s.topology.kind, data, f"{s.training.rounds} x {s.training.steps_per_round}",
+                      faults, s.run.mode)
     Console().print(table)
 
 

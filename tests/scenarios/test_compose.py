@@ -152,3 +152,15 @@ def test_dockerfile_uses_the_cpu_wheel():
     assert "FROM python:3.11-slim" in text
     assert "torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu" in text
     assert 'ENTRYPOINT ["dinerf-agent"]' in text
+
+
+def test_shipped_compose_files_are_current():
+    """scenarios/*/docker-compose.yml are what `scenario compose` writes today (regenerate if this fails)."""
+    from cli.scenario.spec import list_scenarios
+
+    shipped = [d for d in list_scenarios() if (d / "docker-compose.yml").is_file()]
+    assert shipped
+    for folder in shipped:
+        spec = load_scenario(folder)
+        text = (folder / "docker-compose.yml").read_text()
+        assert dump_yaml(compose_document(spec, folder)) in text, f"regenerate: dinerf-agent scenario compose {folder.name}"
