@@ -4,7 +4,7 @@ timeline, wait for the swarm to finish, and stop everything (and every namespace
 The runner only orchestrates. It knows the swarm's progress by following each robot's
 ``telemetry.jsonl`` (one line per completed round; its ``round`` is the number of rounds the
 robot has completed, i.e. theta^round exists), and "the swarm is at round k" (counting from 0)
-means some robot has completed k rounds. Faults fire then:
+means every running robot has completed k rounds. Faults fire then:
 
 - ``kill``: SIGKILL (no goodbye, like a crash or a power cut); the robot's run dir stays;
 - ``restart``: the same ``up`` command again on the same run dir (the daemon resumes);
@@ -307,8 +307,13 @@ class ScenarioRunner:
         return sorted(items, key=lambda t: (t[0], t[1]))
 
     def swarm_round(self) -> int:
-        """The round the swarm is in (from 0): the most rounds any robot has completed."""
-        return max((r.completed for r in self.robots.values()), default=0)
+        """The round the swarm is in (from 0): the rounds every running robot has completed.
+
+        The slowest running robot sets the pace, so a robot cut off from everybody (which trains
+        alone, without waiting for anyone) cannot drag the timeline ahead of the swarm.
+        """
+        running = [r.completed for r in self.robots.values() if r.state == "running"]
+        return min(running) if running else max((r.completed for r in self.robots.values()), default=0)
 
     def _expected_alive_at_end(self) -> set[int]:
         alive = set(self.spec.ids)

@@ -34,8 +34,8 @@ error that names it. Example (every table but ``[scenario]`` is optional)::
     [run]
     mode = "local"                             # or netns (root); timeout_s = 600 ...
 
-"Round k" in the timeline means: as soon as any robot has started round k (finished k - 1),
-rounds counting from 0. ``to_round`` is when the fault ends (the link is healed or made clean
+"Round k" in the timeline means: as soon as every running robot has completed k rounds
+(rounds count from 0; the slowest sets the pace). ``to_round`` is when the fault ends (the link is healed or made clean
 again); without it the fault lasts until the end.
 """
 

@@ -1,0 +1,178 @@
+"""End to end: `scenario run` machinery with the real `dinerf-agent up` daemons, in network namespaces.
+
+Each test runs a tiny swarm (24x24 procedural scene, 2^12 hash table, a few steps per round), applies
+one fault on the real network, and asserts what the survivors achieved: every round done, the
+fault seen where it should be (who was heard), checkpoints intact, and image quality next to the
+same swarm without the fault. Needs root (skipped otherwise, with the reason).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from cli.scenario.netns import list_namespaces
+from cli.scenario.report import build_report
+from cli.scenario.runner import ScenarioRunner
+from cli.scenario.spec import load_scenario
+from tests.scenarios.netns_helpers import needs_netns
+
+pytestmark = [needs_netns, pytest.mark.netns, pytest.mark.slow]
+
+TINY = """
+[scenario]
+name = "e2e"
+dataset = "procedural:views=36,width=24"
+robots = 4
+[split]
+overlap = 0.2
+frame = "world"
+holdout_every = 6
+[topology]
+kind = "ring"
+[training]
+rounds = ROUNDS
+steps_per_round = 8
+seed = 3
+holdout_every = 0
+[training.consensus]
+rho0 = 0.05
+[training.train]
+rays_per_step = 256
+[training.train.field]
+density_hidden = 32
+color_hidden = 32
+[training.train.field.grid]
+log2_hashmap_size = 12
+num_levels = 8
+max_resolution = 128
+[training.train.occupancy]
+resolution = 32
+warmup_steps = 16
+update_every = 8
+[network]
+lease_ms = 1000
+[daemon]
+round_timeout_s = 20
+startup_wait_s = 20
+eval_every = 0
+[report]
+eval_every = 100
+render_views = 2
+ssim = false
+[run]
+mode = "netns"
+timeout_s = 240
+"""
+
+
+ROUNDS = 8
+
+
+def run_scenario(tmp: Path, name: str, faults: str = ""):
+    folder = tmp / name
+    folder.mkdir()
+    (folder / "scenario.toml").write_text(TINY.replace("ROUNDS", str(ROUNDS)) + faults)
+    spec = load_scenario(folder)
+    out = folder / "out"
+    runner = ScenarioRunner(spec, out, echo=lambda s: None)
+    outcome = runner.run()
+    assert not [n for n in list_namespaces() if n.startswith(runner.lab.run_id)], "namespaces left behind"
+    report = build_report(out, spec, echo=lambda s: None) if outcome.ok else None
+    return outcome, out, report
+
+
+def telemetry(out: Path, robot: int) -> list[dict]:
+    return [json.loads(l) for l in (out / "robots" / str(robot) / "telemetry.jsonl").read_text().splitlines()]
+
+
+@pytest.fixture(scope="module")
+def fault_free(tmp_path_factory):
+    outcome, out, report = run_scenario(tmp_path_factory.mktemp("free"), "free")
+    assert outcome.ok, outcome.reason
+    return out, report
+
+
+def final_psnr(report: dict, robot: int) -> float:
+    return report["robots"][str(robot)]["final"]["psnr"]
+
+
+def test_fault_free_swarm_completes(fault_free):
+    out, report = fault_free
+    for i in (1, 2, 3, 4):
+        recs = telemetry(out, i)
+        assert [r["round"] for r in recs] == list(range(1, ROUNDS + 1))
+        assert json.loads((out / f"robots/{i}/done.json").read_text())["rounds"] == ROUNDS
+        assert all(r["heard"] == r["live_neighbours"] for r in recs)
+        assert math.isfinite(final_psnr(report, i))
+    assert (out / "report.md").is_file() and (out / "convergence.png").is_file() and (out / "renders.png").is_file()
+
+
+def test_kill_a_robot_survivors_finish(tmp_path, fault_free):
+    """SIGKILL robot 3 of the ring 1-2-3-4 at round 2: the others finish every round, near the fault-free run."""
+    outcome, out, report = run_scenario(tmp_path, "kill", "[faults]\nkill = [{ robot = 3, round = 2 }]\n")
+    assert outcome.ok, outcome.reason
+    run = json.loads((out / "run.json").read_text())
+    kill = next(e for e in run["events"] if e.get("fault") == "kill")
+    assert run["robots"]["3"]["exit_codes"] == [-9]
+    for i, other in ((2, 1), (4, 1)):
+        recs = telemetry(out, i)
+        assert [r["round"] for r in recs] == list(range(1, ROUNDS + 1))
+        late = [r for r in recs if r["round"] >= kill["robot_rounds"][str(i)] + 2]  # begun after the kill
+        assert late and all(r["live_neighbours"] == [other] and r["heard"] == [other] for r in late), late
+        # liveliness notices the death: nobody waits out the 20 s barrier for the dead robot
+        assert all(r["seconds_wait"] < 10 for r in late), [r["seconds_wait"] for r in late]
+    for i in (1, 2, 4):
+        assert (out / f"robots/{i}/done.json").is_file()
+        assert abs(final_psnr(report, i) - final_psnr(fault_free[1], i)) < 1.0
+    # the dead robot's checkpoint is intact and loadable (no lost checkpoint)
+    from agent.daemon import load_for_eval
+
+    trainer = load_for_eval(out / "robots/3", out / "data/robot3")
+    assert trainer.step == 8 * len(telemetry(out, 3))
+
+
+@pytest.fixture(scope="module")
+def cut_run(tmp_path_factory):
+    """Cut 2-3 of the ring 1-2-3-4 from round 2 to round 5."""
+    outcome, out, report = run_scenario(tmp_path_factory.mktemp("cut"), "cut",
+                                        "[faults]\ncut = [{ link = [2, 3], from_round = 2, to_round = 5 }]\n")
+    assert outcome.ok, outcome.reason
+    run = json.loads((out / "run.json").read_text())
+    cut = next(e for e in run["events"] if e.get("fault") == "cut")
+    heal = next(e for e in run["events"] if e.get("fault") == "heal")
+    return out, report, cut, heal
+
+
+def test_cut_link_is_silent_while_cut_and_everyone_finishes(cut_run, fault_free):
+    out, report, cut, heal = cut_run
+    for i, peer, other in ((2, 3, 1), (3, 2, 4)):
+        recs = {r["round"]: r for r in telemetry(out, i)}
+        assert max(recs) == ROUNDS and (out / f"robots/{i}/done.json").is_file()
+        inside = [k for k in recs if cut["robot_rounds"][str(i)] + 1 < k <= heal["robot_rounds"][str(i)]]
+        assert inside, recs.keys()
+        # the cut link carries nothing, the other link of the ring still does (the peer may still count
+        # as alive: liveness is gossiped around the ring)
+        assert all(recs[k]["heard"] == [other] for k in inside), {k: recs[k]["heard"] for k in recs}
+        after = [k for k in recs if k > heal["robot_rounds"][str(i)] + 1]
+        assert after and all(peer in recs[k]["live_neighbours"] for k in after)  # healed: alive again
+    for i in (1, 2, 3, 4):
+        assert abs(final_psnr(report, i) - final_psnr(fault_free[1], i)) < 1.0
+
+
+@pytest.mark.xfail(reason="daemon: after a cut the robots of a ring stay out of phase (2 and 3 on even rounds, 1 and 4 on "
+                          "odd ones), skip rounds to catch up and every barrier waits out round_timeout_s; reported to "
+                          "the daemon's owner (issue 4)", strict=False)
+def test_after_the_heal_the_swarm_is_in_step_again(cut_run):
+    out, report, cut, heal = cut_run
+    for i, peer in ((2, 3), (3, 2)):
+        recs = {r["round"]: r for r in telemetry(out, i)}
+        after = [k for k in recs if k > heal["robot_rounds"][str(i)] + 1]
+        assert any(peer in recs[k]["heard"] for k in after), {k: recs[k]["heard"] for k in recs}
+    for i in (1, 2, 3, 4):
+        recs = telemetry(out, i)
+        assert [r["round"] for r in recs] == list(range(1, ROUNDS + 1)), "rounds skipped"
+        assert all(r["seconds_wait"] < 10 for r in recs), [r["seconds_wait"] for r in recs]
