@@ -107,3 +107,56 @@ def test_cut_link_in_netns_is_seen_by_the_robots(tmp_path):
     # robot 3 (not on the cut link) always heard 2
     recs3 = [json.loads(l) for l in (out / "robots/3/telemetry.jsonl").read_text().splitlines()]
     assert all(r["heard"] == ["tcp/198.18.0.5:7447"] for r in recs3)
+
+
+RUN_CHILD = """
+import sys
+from pathlib import Path
+from cli.scenario.runner import ScenarioRunner
+from cli.scenario.spec import load_scenario
+from tests.scenarios.test_runner import stand_in
+spec = load_scenario(sys.argv[1])
+r = ScenarioRunner(spec, Path(sys.argv[2]), up_command=stand_in, echo=lambda s: print(s, flush=True))
+res = r.run()
+print('outcome', res.ok, res.reason, flush=True)
+"""
+
+
+@needs_netns
+@pytest.mark.netns
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_signal_stops_robots_and_removes_namespaces(tmp_path, sig):
+    """Ctrl-C (or SIGTERM) during a netns run: every daemon it started is gone, and every namespace."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    (tmp_path / "scenario.toml").write_text(TOML.replace("rounds = 8", "rounds = 200") + '[run]\nmode = "netns"\n')
+    out = tmp_path / "run"
+    root = Path(__file__).resolve().parents[2]
+    child = subprocess.Popen([sys.executable, "-c", RUN_CHILD, str(tmp_path / "scenario.toml"), str(out)], cwd=root,
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.monotonic() + 60
+    while not (out / "robots/3/telemetry.jsonl").is_file() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    namespaces = [n for n in list_namespaces() if n.startswith(f"dinerf-{child.pid}-")]
+    assert len(namespaces) == 3
+    pids = {}
+    for ns in namespaces:
+        p = subprocess.run(["ip", "netns", "pids", ns], capture_output=True, text=True)
+        pids[ns] = [int(x) for x in p.stdout.split()]
+    assert all(pids.values())  # a stand-in daemon runs in each
+    child.send_signal(getattr(signal, sig))
+    text, _ = child.communicate(timeout=60)
+    assert "outcome False interrupted" in text, text
+    assert not [n for n in list_namespaces() if n.startswith(f"dinerf-{child.pid}-")]
+    for pid in (p for ps in pids.values() for p in ps):
+        try:
+            os.kill(pid, 0)
+            alive = True
+        except ProcessLookupError:
+            alive = False
+        assert not alive, f"process {pid} survived"
+    run = json.loads((out / "run.json").read_text())
+    assert run["ok"] is False and "interrupted" in run["reason"]
