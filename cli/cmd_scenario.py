@@ -65,6 +65,7 @@ def run_cmd(
     out: Path = typer.Option(None, "--out", help="Output folder (default: runs/scenarios/<name>/<time>)."),
     overrides: list[str] = typer.Option([], "--set", help="Override a scenario setting, e.g. --set training.rounds=4 (repeatable)."),
     report: bool = typer.Option(True, "--report/--no-report", help="Evaluate the run and write report.md/json + PNGs."),
+    force: bool = typer.Option(False, "--force", help="Replace the output of an earlier run in --out (a folder holding run.json)."),
 ) -> None:
     """Run a scenario: split the data, start one daemon per robot, apply the faults, write the report."""
     from cli.scenario.netns import NetnsError, netns_unavailable_reason
@@ -80,7 +81,13 @@ def run_cmd(
         spec.resolved_dataset()  # a missing dataset is an error now, not after the set-up
     out = out or Path("runs") / "scenarios" / spec.name / time.strftime("%Y%m%d-%H%M%S")
     if out.exists() and any(out.iterdir()):
-        raise UserError(f"--out {out}: folder is not empty; choose another")
+        if not (force and (out / "run.json").is_file()):
+            raise UserError(f"--out {out}: folder is not empty; choose another"
+                            + (" (--force replaces only an earlier scenario run's folder)" if force else
+                               " or pass --force to replace an earlier run"))
+        import shutil
+
+        shutil.rmtree(out)
     typer.echo(f"[scenario] {spec.name} ({mode}) -> {out}")
     try:
         outcome = ScenarioRunner(spec, out, mode=mode, echo=typer.echo).run()

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import heapq
 import json
+import os
 import random
 import signal
 import socket
@@ -130,13 +131,21 @@ def main(argv: list[str] | None = None) -> int:
         threading.Thread(target=d.receive_forever, daemon=True).start()
         threading.Thread(target=d.send_forever, daemon=True).start()
 
+    exited = threading.Event()
+
     def report(event: str) -> None:
-        print(json.dumps({"event": event, "delay_ms": imp.delay * 1000, "jitter_ms": imp.jitter * 1000,
-                          "loss": imp.loss, **{d.name: dict(d.counts) for d in dirs}}), flush=True)
+        if event == "exit":
+            if exited.is_set():
+                return
+            exited.set()
+        line = json.dumps({"event": event, "delay_ms": imp.delay * 1000, "jitter_ms": imp.jitter * 1000,
+                           "loss": imp.loss, **{d.name: dict(d.counts) for d in dirs}})
+        sys.stdout.write(line + "\n")  # one write: a signal arriving mid-print cannot split the line
+        sys.stdout.flush()
 
     def stop(signum, frame):  # noqa: ARG001
         report("exit")
-        sys.exit(0)
+        os._exit(0)
 
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
@@ -152,6 +161,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         report("set")
     report("exit")
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # the exit line is out: a late SIGTERM must not cut it
     return 0
 
 

@@ -413,10 +413,13 @@ class NetnsLab:
         for proc in self.relays.values():
             with contextlib.suppress(Exception):
                 if proc.stdin:
-                    proc.stdin.close()
+                    proc.stdin.close()  # the emulator reports its counters and exits
             with contextlib.suppress(Exception):
-                proc.terminate()
-                proc.wait(timeout=3)
+                proc.wait(timeout=2)
+            with contextlib.suppress(Exception):
+                if proc.poll() is None:
+                    proc.terminate()
+                    proc.wait(timeout=3)
             if proc.poll() is None:
                 with contextlib.suppress(Exception):
                     proc.kill()

@@ -211,11 +211,13 @@ def test_lossy_slow_link_still_carries_the_model(tmp_path, fault_free):
     assert outcome.ok, outcome.reason
     run = json.loads((out / "run.json").read_text())
     netem = next(e for e in run["events"] if e.get("fault") == "netem")
-    r1 = {r["round"]: r for r in telemetry(out, 1)}
-    late = [k for k in r1 if k > netem["robot_rounds"]["1"] + 1]
-    assert late and max(r1) == ROUNDS
-    assert sum(2 in r1[k]["heard"] for k in late) >= len(late) - 1, {k: r1[k]["heard"] for k in r1}
-    assert sum(int(r1[k]["bytes_in"].get("2", 0)) for k in late) > 0
+    for i, peer in ((1, 2), (2, 1)):
+        recs = {r["round"]: r for r in telemetry(out, i)}
+        late = [k for k in recs if k > netem["robot_rounds"][str(i)] + 1]
+        assert late and max(recs) == ROUNDS and (out / f"robots/{i}/done.json").is_file()
+        # whole snapshots (~0.25 MB at ~30 KB/s of TCP goodput at this loss and delay) still cross the link
+        # (whether they arrive in time for the round they belong to is the xfail above: rounds drift apart)
+        assert sum(int(recs[k]["bytes_in"].get(str(peer), 0)) for k in late) > 200_000, {k: recs[k]["bytes_in"] for k in recs}
     relay_log = out / "logs/relay-1-2.log"
     if relay_log.is_file():  # the userspace emulator (no sch_netem here): it really dropped packets
         final = [json.loads(l) for l in relay_log.read_text().splitlines() if l.startswith("{")][-1]

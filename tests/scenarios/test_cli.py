@@ -1,0 +1,104 @@
+"""`dinerf-agent scenario ...` as a user types it: one-line errors, and a tiny real run on loopback."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+ENTRY = "import sys; sys.argv[0] = 'dinerf-agent'; from cli.main import main; main()"
+
+TINY = """
+[scenario]
+name = "cli-tiny"
+dataset = "procedural:views=24,width=24"
+robots = 2
+[split]
+frame = "world"
+holdout_every = 6
+[topology]
+kind = "full"
+[training]
+rounds = 3
+steps_per_round = 6
+holdout_every = 0
+[training.train]
+rays_per_step = 256
+[training.train.field.grid]
+log2_hashmap_size = 12
+num_levels = 8
+max_resolution = 128
+[training.train.occupancy]
+resolution = 32
+warmup_steps = 16
+update_every = 8
+[daemon]
+round_timeout_s = 20
+eval_every = 0
+[baseline]
+enabled = true
+[report]
+ssim = false
+render_views = 2
+"""
+
+
+def agent(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", ENTRY, *args], capture_output=True, text=True, cwd=ROOT, timeout=timeout)
+
+
+def one_line_error(p: subprocess.CompletedProcess) -> str:
+    assert p.returncode == 2, (p.returncode, p.stdout, p.stderr)
+    lines = [l for l in p.stderr.splitlines() if l.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in p.stderr, p.stderr
+    return lines[0]
+
+
+def test_list_shows_the_shipped_scenarios():
+    p = agent("scenario", "list")
+    assert p.returncode == 0, p.stderr
+    assert "quickstart" in p.stdout and "lego-5-ring" in p.stdout
+
+
+def test_errors_are_one_line(tmp_path):
+    assert "no scenario 'nope'" in one_line_error(agent("scenario", "run", "nope"))
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[scenario\nname = 1\n")
+    assert "not valid TOML" in one_line_error(agent("scenario", "run", str(bad)))
+    typo = tmp_path / "typo.toml"
+    typo.write_text(TINY.replace("steps_per_round", "step_per_round"))
+    assert "step_per_round" in one_line_error(agent("scenario", "run", str(typo)))
+    cut = tmp_path / "cut.toml"
+    cut.write_text(TINY + "[faults]\ncut = [{ link = [1, 2], from_round = 1 }]\n")
+    assert "--mode netns" in one_line_error(agent("scenario", "run", str(cut), "--mode", "local"))
+    missing = tmp_path / "missing.toml"
+    missing.write_text(TINY.replace('"procedural:views=24,width=24"', '"../no/such/lego"'))
+    assert "dataset '../no/such/lego' not found" in one_line_error(agent("scenario", "run", str(missing)))
+    assert "run.json" in one_line_error(agent("scenario", "report", str(tmp_path)))
+
+
+@pytest.mark.slow
+def test_tiny_run_on_loopback_writes_the_report(tmp_path):
+    scen = tmp_path / "scenario.toml"
+    scen.write_text(TINY)
+    out = tmp_path / "out"
+    p = agent("scenario", "run", str(scen), "--out", str(out))
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    assert "completed: all robots finished" in p.stdout
+    report = json.loads((out / "report.json").read_text())
+    for i in ("1", "2"):
+        r = report["robots"][i]
+        assert r["final_round"] == 3 and r["final"]["psnr"] > 5 and r["rounds_logged"] == 3
+        assert set(r["rounds"]) == {"1", "2", "3"}
+    assert report["links_bytes"]["1->2"] > 0 and report["links_bytes"]["2->1"] > 0
+    assert report["baseline"]["centralised"]["psnr"] > 5 and set(report["baseline"]["alone"]) == {"1", "2"}
+    md = (out / "report.md").read_text()
+    assert "| robot | round | PSNR all" in md and "Centralised model" in md
+    for png in ("convergence.png", "renders.png"):
+        assert (out / png).read_bytes()[:4] == b"\x89PNG"
+    again = agent("scenario", "run", str(scen), "--out", str(out))
+    assert "--force" in one_line_error(again)
