@@ -55,7 +55,7 @@ def compose_document(spec: ScenarioSpec, compose_dir: Path) -> dict[str, Any]:
     for i in spec.ids:
         mine = [(key, info) for key, info in addrs.items() if i in key]
         cmd = ["up", "--id", str(i), "--data", "/data/robot", "--swarm", "/swarm/swarm.toml", "--run-dir", "/run/robot"]
-        for key, info in mine:
+        for _, info in mine:
             cmd += ["--listen", f"tcp/{info[i]}:{PORT}"]
         for (a, b), info in mine:
             other = b if i == a else a

@@ -257,6 +257,7 @@ class NetnsLab:
         self.log_dir = log_dir
         self.namespaces: list[str] = []  # everything made, in order (deleted in reverse)
         self.relays: dict[tuple[int, int], subprocess.Popen] = {}
+        self._logs: list = []  # relay log files, closed by cleanup
         self.link_state: dict[tuple[int, int], dict] = {k: {"up": True, "impair": None} for k in self.links}
         self.created = False
         self._closed = False
@@ -347,7 +348,9 @@ class NetnsLab:
             run_ip("link", "set", relay_if, "gso_max_segs", "1", ns=relay)
             run_ip("link", "set", relay_if, "up", ns=relay)
         self._address(l)
-        log = open(self.log_dir / f"relay-{l.a}-{l.b}.log", "w") if self.log_dir else subprocess.DEVNULL
+        log = open(self.log_dir / f"relay-{l.a}-{l.b}.log", "w") if self.log_dir else subprocess.DEVNULL  # noqa: SIM115
+        if self.log_dir:
+            self._logs.append(log)
         env = dict(os.environ)
         root = str(Path(__file__).resolve().parents[2])
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
@@ -426,6 +429,9 @@ class NetnsLab:
                     proc.wait(timeout=3)
         for name in reversed(self.namespaces):
             _delete_namespace(name)
+        for f in self._logs:
+            with contextlib.suppress(Exception):
+                f.close()
         with _LOCK:
             if self in _LABS:
                 _LABS.remove(self)

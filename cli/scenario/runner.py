@@ -317,7 +317,7 @@ class ScenarioRunner:
 
     def _expected_alive_at_end(self) -> set[int]:
         alive = set(self.spec.ids)
-        for rnd, _, kind, r in sorted([(k.round, 0, "kill", k.robot) for k in self.spec.faults.kill]
+        for _rnd, _, kind, r in sorted([(k.round, 0, "kill", k.robot) for k in self.spec.faults.kill]
                                       + [(s.round, 1, "restart", s.robot) for s in self.spec.faults.restart]):
             (alive.discard if kind == "kill" else alive.add)(r)
         return alive

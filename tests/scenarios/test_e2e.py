@@ -149,7 +149,7 @@ def cut_run(tmp_path_factory):
 
 
 def test_cut_link_is_silent_while_cut_and_everyone_finishes(cut_run, fault_free):
-    out, report, cut, heal = cut_run
+    out, report, cut, heal = cut_run  # noqa: RUF059
     for i, peer, other in ((2, 3, 1), (3, 2, 4)):
         recs = {r["round"]: r for r in telemetry(out, i)}
         assert max(recs) == ROUNDS and (out / f"robots/{i}/done.json").is_file()
@@ -168,7 +168,7 @@ def test_cut_link_is_silent_while_cut_and_everyone_finishes(cut_run, fault_free)
                           "odd ones), skip rounds to catch up and every barrier waits out round_timeout_s; reported to "
                           "the daemon's owner (issue 4)", strict=False)
 def test_after_the_heal_the_swarm_is_in_step_again(cut_run):
-    out, report, cut, heal = cut_run
+    out, _report, _cut, heal = cut_run
     for i, peer in ((2, 3), (3, 2)):
         recs = {r["round"]: r for r in telemetry(out, i)}
         after = [k for k in recs if k > heal["robot_rounds"][str(i)] + 1]
