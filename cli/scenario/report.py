@@ -198,41 +198,68 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
 
 
 def _baselines(spec: ScenarioSpec, out: Path, evalset, echo) -> dict:
+    """Centralised model here; the robots alone in 2 worker processes meanwhile (2 cores: ~half the wall time)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
     from agent.baseline import evaluate_heldout, train_baseline
-    from agent.data.folder import read_scene
     from agent.data.loaders import load_views
-    from agent.evaluation import evaluate_robot
-    from agent.swarm import build_robot
+    from cli.scenario.spec import spec_to_dict
 
     steps = spec.baseline.steps or spec.training.total_steps
     result: dict[str, Any] = {"steps": steps}
-    t = time.monotonic()
-    echo(f"[report] baseline: centralised model, {steps} steps")
-    views = load_views(spec.resolved_dataset(), width=spec.width)
-    cfg = dataclasses.replace(spec.training.train, total_steps=steps, seed=spec.training.seed, init_seed=spec.training.seed)
-    run = train_baseline(views, cfg, spec.split.holdout_every)
-    scores = evaluate_heldout(run, views, with_ssim=spec.report.ssim)
-    result["centralised"] = {"psnr": _mean(scores["psnr"]), "ssim": _mean(scores["ssim"]),
-                             "seconds": time.monotonic() - t, "views": len(scores["psnr"])}
-    result["_trainer"] = run.trainer
+    pool = None
+    futures = {}
     if spec.baseline.alone:
-        scene = read_scene(out / "data")
-        alone = {}
-        for i in spec.ids:
-            t = time.monotonic()
-            echo(f"[report] baseline: robot {i} alone, {steps} steps")
-            rviews = load_views(out / "data" / f"robot{i}")
-            tcfg = dataclasses.replace(spec.training, rounds=1, steps_per_round=steps)
-            setup = build_robot(i, rviews, scene.box_from_shared, tcfg, initial_pose=evalset.T_shared_from_local(i).float(),
-                                is_reference=True)  # is_reference: pose frozen at the truth
-            setup.trainer.train(steps)
-            ev = evaluate_robot(setup.trainer, evalset, i, with_ssim=spec.report.ssim)
-            alone[str(i)] = {"psnr": ev.psnr_all, "ssim": ev.ssim_all if spec.report.ssim else None,
-                             "psnr_others_only": ev.psnr_others,
-                             "ssim_others_only": ev.ssim_others if spec.report.ssim else None,
-                             "seconds": time.monotonic() - t}
-        result["alone"] = alone
+        echo(f"[report] baseline: robots {spec.ids} alone, {steps} steps each (2 worker processes)")
+        pool = ProcessPoolExecutor(max_workers=min(2, len(spec.ids)), mp_context=mp.get_context("spawn"))
+        data = spec_to_dict(spec)
+        futures = {i: pool.submit(_train_alone, data, str(out), i, steps) for i in spec.ids}
+    try:
+        t = time.monotonic()
+        echo(f"[report] baseline: centralised model, {steps} steps")
+        views = load_views(spec.resolved_dataset(), width=spec.width)
+        cfg = dataclasses.replace(spec.training.train, total_steps=steps, seed=spec.training.seed,
+                                  init_seed=spec.training.seed)
+        run = train_baseline(views, cfg, spec.split.holdout_every)
+        scores = evaluate_heldout(run, views, with_ssim=spec.report.ssim)
+        result["centralised"] = {"psnr": _mean(scores["psnr"]), "ssim": _mean(scores["ssim"]),
+                                 "seconds": time.monotonic() - t, "views": len(scores["psnr"])}
+        result["_trainer"] = run.trainer
+        if futures:
+            result["alone"] = {str(i): f.result() for i, f in futures.items()}
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
     return result
+
+
+def _train_alone(spec_data: dict, out: str, robot: int, steps: int) -> dict:
+    """One robot alone on its own views, pose fixed to the truth (runs in a worker process)."""
+    import torch
+
+    from agent.data.folder import read_scene
+    from agent.data.loaders import load_views
+    from agent.evaluation import EvalSet, evaluate_robot
+    from agent.swarm import build_robot
+
+    data = dict(spec_data)
+    data.pop("path", None)
+    spec = from_dict(ScenarioSpec, data)
+    torch.set_num_threads(1)
+    t = time.monotonic()
+    evalset = EvalSet.from_dir(Path(out) / "data")
+    scene = read_scene(Path(out) / "data")
+    views = load_views(Path(out) / "data" / f"robot{robot}")
+    tcfg = dataclasses.replace(spec.training, rounds=1, steps_per_round=steps)
+    setup = build_robot(robot, views, scene.box_from_shared, tcfg,
+                        initial_pose=evalset.T_shared_from_local(robot).float(),
+                        is_reference=True)  # is_reference: the pose stays frozen at the truth
+    setup.trainer.train(steps)
+    ev = evaluate_robot(setup.trainer, evalset, robot, with_ssim=spec.report.ssim)
+    return {"psnr": ev.psnr_all, "ssim": ev.ssim_all if spec.report.ssim else None,
+            "psnr_others_only": ev.psnr_others, "ssim_others_only": ev.ssim_others if spec.report.ssim else None,
+            "seconds": time.monotonic() - t}
 
 
 def _summary(report: dict, ids: list[int]) -> dict:
