@@ -60,6 +60,10 @@ class DaemonConfig:
     eval_every: int = 1  # rounds between PSNR evaluations on own held-out views (0 = never)
     keep_rounds: bool = False  # also save rounds/<k>.pt (field + pose) for per-round reports
     join_timeout_s: float = 5.0  # query timeout for neighbours' newest snapshots
+    # Initial relative pose: "identity" (the paper) or "coarse": match compact keyframe summaries
+    # (descriptors + 3-D points, never images) with neighbours whose pose is already known.
+    initial_pose: Literal["identity", "coarse"] = "identity"
+    align_timeout_s: float = 60.0  # give up on the coarse step after this long (identity start)
 
     def __post_init__(self) -> None:
         if self.round_timeout_s <= 0 or self.heartbeat_s <= 0 or self.threads < 1:
@@ -180,6 +184,8 @@ class Daemon:
         self._telemetry = open(self.run_dir / "telemetry.jsonl", "a")
         self._heartbeat: threading.Thread | None = None
         self._last_heard: dict[int, ThetaSnapshot] = {}
+        self._neighbour_status: dict[int, Status] = {}
+        self._last_status["alignment"] = "identity" if cfg.initial_pose == "identity" else "pending"
         with torch.no_grad():
             self._last_status["pose7"] = pose_summary(self.trainer.pose.matrix())["params7"]
 
@@ -204,6 +210,11 @@ class Daemon:
             self._reject("garbage", f"{key}: {e}")
             return
         self.alive.merge(msg.alive_ages)
+        self._remember_status(msg)
+
+    def _remember_status(self, msg: Status) -> None:
+        with self._state_lock:
+            self._neighbour_status[msg.sender] = msg
 
     def _on_alive(self, ids: frozenset[int]) -> None:
         self.alive.set_direct(ids)
@@ -347,6 +358,87 @@ class Daemon:
         self.mailbox.advance(target)
         return dict(sorted(items.items()))
 
+    # ------------------------------------------------------------------ coarse initial pose
+    def _coarse_alignment(self) -> None:
+        """Initial T_i from keyframe summaries, propagated outward from the reference.
+
+        A robot whose pose is known (the reference: identity; others once aligned) says so in its
+        status (``alignment`` = "reference" or "coarse..."), with its pose. Robot i matches its own
+        summary with such a neighbour j's (``T_j_from_i`` by RANSAC Sim(3)) and starts from
+        ``T_g_from_j T_j_from_i``. No overlap anywhere -> identity start, reported in telemetry.
+        """
+        from agent.align import AlignConfig, Summary, estimate_relative, summarise
+        from agent.geometry import sim3_from_params
+        from protocol.messages import KeyframeSummary
+
+        acfg = AlignConfig(with_scale=self.trainer.cfg.pose.mode == "sim3")
+        t0 = time.monotonic()
+        own = summarise(self.setup.trainer.views, cfg=acfg)
+        image_bytes = int(self.setup.trainer.views.images.numel())  # 8-bit channels it stands for
+        msg = KeyframeSummary(swarm=self.swarm.name, sender=self.robot_id, round=0, epoch=self.membership.epoch,
+                              descriptors=own.descriptors, points=own.points, keyframe_index=own.keyframe_index,
+                              image_bytes=image_bytes)
+        data = codec.encode(msg)
+        self.net.set_keyframes(data)
+        self._event("keyframes", bytes=len(data), image_bytes=image_bytes, points=len(own),
+                    seconds=time.monotonic() - t0)
+        self.log(f"[robot {self.robot_id}] keyframe summary: {len(own)} points, {len(data) / 1e3:.0f} kB "
+                 f"(its images: {image_bytes / 1e6:.1f} MB)")
+        if self.membership.reference == self.robot_id:
+            self._set_status(alignment="reference")
+            return
+
+        summaries: dict[int, Summary] = {}
+        tried: dict[int, str] = {}
+        deadline = time.monotonic() + self.cfg.align_timeout_s
+        while time.monotonic() < deadline and not self._stop.is_set():
+            with self._state_lock:
+                statuses = dict(self._neighbour_status)
+            best = None
+            for j in sorted(self.membership.live_neighbours):
+                st = statuses.get(j)
+                if st is None or not (st.alignment == "reference" or st.alignment.startswith("coarse")):
+                    continue  # j does not know where it is yet
+                if j not in summaries:
+                    raw = self.net.query(self.keys.keyframes(j), timeout=self.cfg.join_timeout_s)
+                    if raw is None:
+                        continue
+                    try:
+                        km = codec.decode(raw, self.status_expect, kind="keyframes", key=self.keys.parse(self.keys.keyframes(j)))
+                        summaries[j] = Summary(km.descriptors, km.points, km.keyframe_index, acfg.descriptor_scale)
+                    except (Rejected, ValueError) as e:
+                        self._reject(getattr(e, "reason", "bad_field"), f"keyframes of robot {j}: {e}")
+                        continue
+                res = estimate_relative(summaries[j], own, acfg)
+                tried[j] = res.reason
+                if not res.success:
+                    continue
+                p = st.pose
+                t_g_from_j = sim3_from_params(torch.tensor(p[0], dtype=torch.float64),
+                                              torch.tensor(p[1:4], dtype=torch.float64),
+                                              torch.tensor(p[4:7], dtype=torch.float64))
+                candidate = t_g_from_j @ torch.from_numpy(res.T_a_from_b)
+                if best is None or res.inliers > best[1]:
+                    best = (j, res.inliers, candidate)
+            if best is not None:
+                j, inliers, T = best
+                self.trainer.pose.set_initial(T.float())
+                with torch.no_grad():
+                    self._set_status(alignment=f"coarse via {j}: {inliers} inliers",
+                                     pose7=pose_summary(self.trainer.pose.matrix())["params7"])
+                self._event("aligned", via=j, inliers=inliers, seconds=time.monotonic() - t0)
+                self.log(f"[robot {self.robot_id}] coarse alignment via robot {j}: {inliers} inliers")
+                return
+            if tried and len(tried) == len(self.membership.live_neighbours) and all(
+                    statuses.get(j) is not None and statuses[j].alignment.startswith(("reference", "coarse", "identity"))
+                    for j in self.membership.live_neighbours):
+                break  # every neighbour knows its pose and none matched: no overlap
+            self._stop.wait(0.5)
+        reason = "; ".join(f"{j}: {r}" for j, r in sorted(tried.items())) or "no aligned neighbour answered"
+        self._set_status(alignment="identity (coarse step found nothing)")
+        self._event("alignment_failed", reason=reason)
+        self.log(f"[robot {self.robot_id}] coarse alignment found nothing ({reason}); starting from the identity")
+
     # ------------------------------------------------------------------ checkpoints
     def _checkpoint(self) -> None:
         state = {
@@ -422,6 +514,8 @@ class Daemon:
         completed = 0
         try:
             self._wait_for_roster()
+            if cfg.initial_pose == "coarse" and not resumed:
+                self._coarse_alignment()
             self._join_current_round()
             self._apply_reference()
             self._event("start", resumed=resumed, alive=sorted(self.membership.alive),
@@ -489,7 +583,7 @@ class Daemon:
             "heard": sorted(heard), "bytes_in": {str(j): b for j, b in bytes_in.items() if b},
             "bytes_out": bytes_out, "seconds_compute": t_compute, "seconds_wait": waited,
             "steps": stats.steps, "seconds_per_step": stats.seconds / max(stats.steps, 1),
-            "rejected": dict(self.rejected),
+            "rejected": dict(self.rejected), "alignment": self._last_status.get("alignment"),
         }
         with self._state_lock:
             self._telemetry.write(json.dumps(record) + "\n")

@@ -69,7 +69,11 @@ class DepthConfig:
 
 @dataclass
 class TrainConfig:
-    rays_per_step: int = 2048
+    rays_per_step: int = 2048  # the most rays per step
+    # Dynamic batch (nerfacc): aim at this many samples per step, so that early steps, when rays
+    # are long and translucent, use fewer rays and cost about as much as later ones. 0 = off.
+    target_samples_per_step: int = 0
+    min_rays_per_step: int = 256
     total_steps: int = 2000  # for schedules; a swarm uses rounds * steps_per_round
     background: Literal["random", "white", "black"] = "random"
     seed: int = 0  # this robot's sampling seed
@@ -133,6 +137,13 @@ class RelativePose(nn.Module):
         for p in (self.phi, self.translation, self.log_scale):
             p.zero_()
         self.set_trainable(False)
+
+    @torch.no_grad()
+    def set_initial(self, transform: Tensor) -> None:
+        """Start from another estimate (e.g. the coarse keyframe alignment) with a zero correction."""
+        self.base.copy_(transform.to(self.base))
+        for p in (self.phi, self.translation, self.log_scale):
+            p.zero_()
 
     def unfreeze(self) -> None:
         """Learn again (a robot with a lower id came back and is the reference again)."""
@@ -201,6 +212,10 @@ class RobotTrainer:
         self.base_lrs = [g["lr"] for g in self.optimizer.param_groups]
         self.consensus = Consensus(list(self.field.parameters()), consensus) if consensus else None
         self.step = 0
+        # Running fraction of evaluated samples that early termination would keep. While it is
+        # high (a young, translucent field) the no-grad visibility pass prunes little and is skipped.
+        self.visible_fraction = 1.0
+        self.samples_per_ray = 32.0  # running mean, drives the dynamic batch
 
     # --- parameters exchanged with neighbours ---------------------------------------------
     def theta(self) -> dict[str, Tensor]:
@@ -283,6 +298,8 @@ class RobotTrainer:
 
         m, h, w, _ = self.images.shape
         n = cfg.rays_per_step
+        if cfg.target_samples_per_step > 0:
+            n = int(min(max(cfg.target_samples_per_step / max(self.samples_per_ray, 1e-3), cfg.min_rays_per_step), n))
         gen = self.generator
         img = torch.randint(0, m, (n,), generator=gen, device=self.device)
         px = torch.randint(0, h * w, (n,), generator=gen, device=self.device)
@@ -296,7 +313,13 @@ class RobotTrainer:
         else:
             target = pixels
         jitter = torch.rand(n, generator=gen, device=self.device)
-        out = render_rays(self.field, self.grid, rays, bg, cfg.march, self.box_from_shared, jitter, lw)
+        # Once the field is opaque enough for termination to pay, it stays on (fields only sharpen).
+        use_visibility = self.visible_fraction < cfg.march.skip_visibility_above
+        out = render_rays(self.field, self.grid, rays, bg, cfg.march, self.box_from_shared, jitter, lw,
+                          visibility=use_visibility)
+        if not use_visibility and out.num_samples:
+            self.visible_fraction = 0.9 * self.visible_fraction + 0.1 * out.num_visible / out.num_samples
+        self.samples_per_ray = 0.9 * self.samples_per_ray + 0.1 * out.num_samples / n
         rgb_loss = ((out.rgb - target) ** 2).mean()
         loss = rgb_loss
         depth_loss = torch.zeros((), device=self.device)
@@ -384,6 +407,8 @@ class RobotTrainer:
             "optimizer": self.optimizer.state_dict(),
             "consensus": None if self.consensus is None else self.consensus.state_dict(),
             "generator": self.generator.get_state(),
+            "visible_fraction": self.visible_fraction,
+            "samples_per_ray": self.samples_per_ray,
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -399,3 +424,5 @@ class RobotTrainer:
         if self.consensus is not None and state["consensus"] is not None:
             self.consensus.load_state_dict(state["consensus"])
         self.generator.set_state(state["generator"])
+        self.visible_fraction = float(state["visible_fraction"])
+        self.samples_per_ray = float(state["samples_per_ray"])

@@ -23,13 +23,14 @@ class RenderOutput:
     rgb: Tensor  # [R, 3] composited onto the background
     depth: Tensor  # [R] z-depth in the rays' source frame, expected under the weights (0 where empty)
     opacity: Tensor  # [R] accumulated alpha
-    num_samples: int
+    num_samples: int  # samples evaluated with gradients
+    num_visible: int  # of those, samples in front of early termination (transmittance > eps)
 
 
-def composite(sigma: Tensor, rgb: Tensor, samples: Samples) -> tuple[Tensor, Tensor, Tensor]:
-    """Per-ray colour, expected distance and opacity.
+def composite(sigma: Tensor, rgb: Tensor, samples: Samples) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Per-ray colour, expected distance and opacity, and each sample's transmittance.
 
-    sigma: [S], rgb: [S, 3] -> (rgb [R, 3], t [R], opacity [R]) with
+    sigma: [S], rgb: [S, 3] -> (rgb [R, 3], t [R], opacity [R], transmittance [S]) with
     ``w_k = T_k (1 - exp(-sigma_k dt_k))``, ``T_k = exp(-sum_{j<k} sigma_j dt_j)``.
     """
     r = samples.num_rays
@@ -40,7 +41,7 @@ def composite(sigma: Tensor, rgb: Tensor, samples: Samples) -> tuple[Tensor, Ten
     color = torch.zeros(r, 3, dtype=rgb.dtype, device=rgb.device).index_add(0, idx, weights[:, None] * rgb)
     dist = torch.zeros(r, dtype=rgb.dtype, device=rgb.device).index_add(0, idx, weights * samples.t_mid)
     opacity = torch.zeros(r, dtype=rgb.dtype, device=rgb.device).index_add(0, idx, weights)
-    return color, dist, opacity
+    return color, dist, opacity, transmittance
 
 
 def render_rays(
@@ -52,6 +53,7 @@ def render_rays(
     box_from_frame: Tensor,
     jitter: Tensor | None = None,
     level_weights: Tensor | None = None,
+    visibility: bool = True,
 ) -> RenderOutput:
     """Render rays given in some frame (shared frame ``g``) with the field living in its box.
 
@@ -64,14 +66,17 @@ def render_rays(
     def density_fn(x: Tensor) -> Tensor:
         return field.density(x, level_weights)[0]
 
-    samples = march(box_rays.origins.detach(), box_rays.directions.detach(), grid, density_fn, march_cfg, jitter)
+    samples = march(box_rays.origins.detach(), box_rays.directions.detach(), grid, density_fn, march_cfg, jitter,
+                    visibility)
     idx = samples.ray_index
     x = box_rays.origins[idx] + samples.t_mid[:, None] * box_rays.directions[idx]  # [S, 3], differentiable
     sigma, rgb = field(x, box_rays.directions[idx], level_weights)
-    color, dist, opacity = composite(sigma, rgb, samples)
+    color, dist, opacity, transmittance = composite(sigma, rgb, samples)
     bg = background.expand_as(color) if background.ndim == 1 else background
     color = color + (1 - opacity[:, None]) * bg
-    return RenderOutput(rgb=color, depth=dist * box_rays.z_per_t, opacity=opacity, num_samples=len(samples))
+    visible = int((transmittance.detach() > march_cfg.early_stop_eps).sum())
+    return RenderOutput(rgb=color, depth=dist * box_rays.z_per_t, opacity=opacity, num_samples=len(samples),
+                        num_visible=visible)
 
 
 @torch.no_grad()

@@ -29,6 +29,7 @@ class MarchConfig:
     early_stop_eps: float = 1e-4  # stop a ray once its transmittance drops below this
     alpha_threshold: float = 0.0  # drop samples whose opacity is below this (0 = keep all)
     first_wave: int = 8  # samples per ray evaluated in the first visibility wave; later waves double
+    skip_visibility_above: float = 0.6  # trainer: skip the visibility pass while it would keep more than this
 
 
 @dataclass
@@ -82,11 +83,14 @@ def march(
     density_fn: Callable[[Tensor], Tensor],
     cfg: MarchConfig,
     jitter: Tensor | None = None,
+    visibility: bool = True,
 ) -> Samples:
     """Candidate samples in occupied cells, thinned by early termination.
 
     origins, directions: [R, 3] in box coordinates (directions unit); jitter: [R] in [0, 1)
     (random offsets during training, None = 0.5 for evaluation); density_fn: x [N, 3] -> sigma [N].
+    ``visibility=False`` skips the no-grad termination pass and returns every occupied candidate:
+    cheaper while the field is still translucent and the pass would prune little.
     """
     num_rays = origins.shape[0]
     device = origins.device
@@ -110,6 +114,8 @@ def march(
     ray_index, t_mid, x = ray_index[keep], t_mid[keep], x[keep]
     if ray_index.numel() == 0:
         return empty
+    if not visibility:
+        return Samples(ray_index, t_mid, torch.full_like(t_mid, dt), num_rays)
 
     # Visibility in waves: rank of each sample within its ray decides its wave.
     starts, _ = segment_starts(ray_index, num_rays)

@@ -144,15 +144,16 @@ class Swarm:
 
 
 def make_swarm(tmp: Path, robots: int = 3, topology: str = "full", frame: str = "world",
-               training: dict | None = None, daemon: dict | None = None, views: int = 36) -> Swarm:
+               training: dict | None = None, daemon: dict | None = None, views: int = 36, width: int = 24,
+               overlap: float = 0.2, seed: int = 1) -> Swarm:
     """Split a tiny procedural scene into robot folders and write the swarm.toml for them."""
     from agent.data.loaders import load_views
     from agent.data.split import SplitConfig, split_views, write_split
     from cli.swarm_file import loopback_endpoints, write_swarm_file
 
     root = tmp / "swarm"
-    result = split_views(load_views(f"procedural:views={views},width=24"),
-                         SplitConfig(robots=robots, overlap=0.2, frame=frame, seed=1))
+    result = split_views(load_views(f"procedural:views={views},width={width}"),
+                         SplitConfig(robots=robots, overlap=overlap, frame=frame, seed=seed))
     write_split(result, root)
     ids = sorted(result.robots)
     daemon_cfg = {"startup_wait_s": 15.0, "round_timeout_s": 30.0, "linger_s": 1.0, "threads": 1}

@@ -174,3 +174,30 @@ def test_status_command_shows_every_robot_live(tmp_path):
     assert "2 robot(s) heard" in out.stdout
     rows = {int(m[1]): int(m[2]) for m in re.finditer(r"^│\s+(\d+)\s+│\s+(\d+)\s+│", out.stdout, re.M)}
     assert sorted(rows) == [1, 2] and all(r >= 1 for r in rows.values()), out.stdout
+
+
+def test_coarse_alignment_over_zenoh_starts_near_the_true_relative_pose(tmp_path):
+    """Robots in random local frames exchange keyframe summaries (never images) and start close."""
+    from agent.data.folder import read_truth
+    from agent.geometry import pose_error
+
+    swarm = make_swarm(tmp_path, robots=2, topology="full", frame="random", views=60, width=64, overlap=0.3,
+                       training={"rounds": 1, "steps_per_round": 2, "train": {"pose": {"mode": "se3"}}},
+                       daemon={"initial_pose": "coarse"})
+    try:
+        swarm.start_all()
+        swarm.wait_all()
+    finally:
+        swarm.stop()
+    truth = read_truth(swarm.root)["robots"]["2"]["T_shared_from_local"]
+    start = [e for e in swarm.events(2) if e["event"] in ("aligned", "alignment_failed")]
+    assert start and start[0]["event"] == "aligned", swarm.log_text(2)
+    kf = [e for e in swarm.events(2) if e["event"] == "keyframes"][0]
+    tel = swarm.telemetry(2)[-1]
+    err = pose_error(torch.tensor(tel["pose"], dtype=torch.float64), truth)
+    identity_err = pose_error(torch.eye(4, dtype=torch.float64), truth)
+    print(f"keyframe summary {kf['bytes'] / 1e3:.0f} kB for {kf['image_bytes'] / 1e6:.2f} MB of images; "
+          f"start error {err['rotation_deg']:.2f} deg / {err['translation']:.3f} (identity start: "
+          f"{identity_err['rotation_deg']:.1f} deg / {identity_err['translation']:.2f}); {tel['alignment']}")
+    assert identity_err["rotation_deg"] > 20  # the test means something: the frames really differ
+    assert err["rotation_deg"] < 3.0 and err["translation"] < 0.1
