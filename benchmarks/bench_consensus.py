@@ -34,7 +34,7 @@ from agent.data.loaders import load_views  # noqa: E402
 from agent.data.split import SplitConfig, split_views  # noqa: E402
 from agent.evaluation import EvalSet, evaluate_robot  # noqa: E402
 from agent.swarm import Simulation, SwarmTrainingConfig  # noqa: E402
-from agent.trainer import CoarseToFineConfig, DepthConfig, PoseConfig, TrainConfig  # noqa: E402
+from agent.trainer import CoarseToFineConfig, DepthConfig, TrainConfig  # noqa: E402
 from cli.config import apply_overrides  # noqa: E402
 from protocol.membership import Topology  # noqa: E402
 
