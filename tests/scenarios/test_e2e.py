@@ -219,8 +219,13 @@ def test_lossy_slow_link_still_carries_the_model(tmp_path, fault_free):
         # (whether they arrive in time for the round they belong to is the xfail above: rounds drift apart)
         assert sum(int(recs[k]["bytes_in"].get(str(peer), 0)) for k in late) > 200_000, {k: recs[k]["bytes_in"] for k in recs}
     relay_log = out / "logs/relay-1-2.log"
-    if relay_log.is_file():  # the userspace emulator (no sch_netem here): it really dropped packets
-        final = [json.loads(l) for l in relay_log.read_text().splitlines() if l.startswith("{")][-1]
+    if relay_log.is_file():  # the userspace emulator (no sch_netem here): it really dropped packets ...
+        events = [json.loads(l) for l in relay_log.read_text().splitlines() if l.startswith("{")]
+        final, at_set = events[-1], [e for e in events if e["event"] == "set"][-1]
         assert final["loss"] == 0.1 and sum(final[d]["dropped"] for d in ("to1->to2", "to2->to1")) > 0
+        # ... and the snapshots themselves went through it (not through Zenoh's shared memory)
+        crossed = final["to1->to2"]["bytes"] - at_set["to1->to2"]["bytes"]
+        received = sum(int(r["bytes_in"].get("1", 0)) for r in telemetry(out, 2) if r["round"] > netem["robot_rounds"]["2"] + 1)
+        assert crossed >= 0.9 * received > 0, (crossed, received)
     for i in (1, 2, 3, 4):
         assert abs(final_psnr(report, i) - final_psnr(fault_free[1], i)) < 1.0
