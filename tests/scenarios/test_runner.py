@@ -99,7 +99,7 @@ def test_cut_link_in_netns_is_seen_by_the_robots(tmp_path):
     heal = next(e for e in run["events"] if e.get("fault") == "heal")
     # robot 1's rounds that ran entirely inside the cut heard nothing; those after the heal heard robot 2
     inside = [k for k in heard if k > cut["robot_rounds"]["1"] + 1 and k <= heal["robot_rounds"]["1"]]
-    after = [k for k in heard if k > heal["robot_rounds"]["1"] + 1]
+    after = [k for k in heard if heal["robot_rounds"]["1"] + 1 < k < 8]  # the last probe may find 2 already gone
     assert inside and after
     assert all(heard[k] == [] for k in inside), heard
     assert all(heard[k] == ["tcp/198.18.0.2:7447"] for k in after), heard
