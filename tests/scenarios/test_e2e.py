@@ -155,10 +155,10 @@ def test_cut_link_is_silent_while_cut_and_everyone_finishes(cut_run, fault_free)
         assert max(recs) == ROUNDS and (out / f"robots/{i}/done.json").is_file()
         inside = [k for k in recs if cut["robot_rounds"][str(i)] + 1 < k <= heal["robot_rounds"][str(i)]]
         assert inside, recs.keys()
-        # the cut link carries nothing, the other link of the ring still does (the peer may still count
-        # as alive: liveness is gossiped around the ring)
-        assert all(recs[k]["heard"] == [other] for k in inside), {k: recs[k]["heard"] for k in recs}
-        assert all(peer not in recs[k]["heard"] for k in inside)
+        # the cut link carries nothing (the peer may still count as alive: liveness is gossiped around
+        # the ring); the other link still does (not in every round: rounds drift apart, see the xfail)
+        assert all(peer not in recs[k]["heard"] for k in inside), {k: recs[k]["heard"] for k in recs}
+        assert any(recs[k]["heard"] == [other] for k in inside), {k: recs[k]["heard"] for k in recs}
     for i in (1, 2, 3, 4):
         assert abs(final_psnr(report, i) - final_psnr(fault_free[1], i)) < 1.0
 
