@@ -82,7 +82,7 @@ def bench_puts(sizes_mb: list[int], repeats: int) -> None:
                 put_s, latency = [], []
                 for _ in range(repeats):
                     t0 = time.monotonic()
-                    net.publish(keys.theta(0, round_no), payload)
+                    net.publish(keys.theta(0, round_no, to=1), payload)
                     t1 = time.monotonic()
                     line = json.loads(child.stdout.readline())
                     assert line["bytes"] == len(payload)

@@ -3,7 +3,7 @@
 Layout (``<swarm>`` is validated, robot ids and rounds are non-negative decimal integers)::
 
     dinerf/<swarm>/alive/<id>           liveliness token of a running robot
-    dinerf/<swarm>/theta/<id>/<round>   parameter snapshot of robot <id> after <round>
+    dinerf/<swarm>/theta/<id>/<round>/<to>  parameter snapshot of robot <id> after <round>, for <to>
     dinerf/<swarm>/latest/<id>          queryable: the newest snapshot of <id> (late join, restart)
     dinerf/<swarm>/status/<id>          telemetry
     dinerf/<swarm>/keyframes/<id>       queryable: compact keyframe summary for coarse alignment
@@ -11,8 +11,13 @@ Layout (``<swarm>`` is validated, robot ids and rounds are non-negative decimal 
 Usage::
 
     keys = Keys("lab")
-    keys.theta(3, 12)            # 'dinerf/lab/theta/3/12'
-    keys.parse('dinerf/lab/theta/3/12')   # ParsedKey(kind='theta', robot_id=3, round=12)
+    keys.theta(3, 12, to=5)      # 'dinerf/lab/theta/3/12/5'
+    keys.parse('dinerf/lab/theta/3/12/5') # ParsedKey(kind='theta', robot_id=3, round=12, receiver=5)
+
+Snapshots are addressed to one neighbour each (``<to>``): Zenoh routes a put only to the
+sessions with a matching subscriber, so a dead or congested link delays that neighbour's copy
+only. With one key for all neighbours, a put with congestion control BLOCK waited on the worst
+link for every neighbour (measured: 20 s stalls of the whole ring after one cut link).
 
 :meth:`Keys.parse` raises :class:`ForeignKey` for anything that is not one of *our* keys (other
 swarm, unknown kind, non-canonical numbers), so a sender id is only ever taken from a key that
@@ -33,13 +38,13 @@ KIND_THETA = "theta"
 KIND_LATEST = "latest"
 KIND_STATUS = "status"
 KIND_KEYFRAMES = "keyframes"
-#: Key kinds and whether they carry a round after the robot id.
-KEY_KINDS: dict[str, bool] = {
-    KIND_ALIVE: False,
-    KIND_THETA: True,
-    KIND_LATEST: False,
-    KIND_STATUS: False,
-    KIND_KEYFRAMES: False,
+#: Key kinds and the number of segments after the robot id (theta: round and receiver).
+KEY_KINDS: dict[str, int] = {
+    KIND_ALIVE: 0,
+    KIND_THETA: 2,
+    KIND_LATEST: 0,
+    KIND_STATUS: 0,
+    KIND_KEYFRAMES: 0,
 }
 
 _SWARM_RE = re.compile(r"[A-Za-z0-9_-]{1,64}")
@@ -55,6 +60,7 @@ class ParsedKey:
     kind: str
     robot_id: int
     round: int | None = None
+    receiver: int | None = None
 
 
 def validate_swarm(swarm: str) -> str:
@@ -97,8 +103,10 @@ class Keys:
     def alive(self, robot_id: int) -> str:
         return self._robot(KIND_ALIVE, robot_id)
 
-    def theta(self, robot_id: int, round: int) -> str:
-        return f"{self._robot(KIND_THETA, robot_id)}/{_check_number(round, 'round')}"
+    def theta(self, robot_id: int, round: int, to: int) -> str:
+        """Robot ``robot_id``'s snapshot after ``round``, addressed to neighbour ``to``."""
+        return (f"{self._robot(KIND_THETA, robot_id)}/{_check_number(round, 'round')}/"
+                f"{_check_number(to, 'receiver id')}")
 
     def latest(self, robot_id: int) -> str:
         return self._robot(KIND_LATEST, robot_id)
@@ -113,12 +121,16 @@ class Keys:
     def alive_all(self) -> str:
         return f"{self.prefix}/{KIND_ALIVE}/*"
 
+    def theta_for(self, robot_id: int, receiver: int) -> str:
+        """Every round of ``robot_id``'s snapshots addressed to ``receiver`` (what a robot subscribes to)."""
+        return f"{self._robot(KIND_THETA, robot_id)}/*/{_check_number(receiver, 'receiver id')}"
+
     def theta_of(self, robot_id: int) -> str:
-        """Every round of one robot's snapshots: subscribe to this for each neighbour."""
-        return f"{self._robot(KIND_THETA, robot_id)}/*"
+        """Every snapshot of one robot, to anyone."""
+        return f"{self._robot(KIND_THETA, robot_id)}/*/*"
 
     def theta_all(self) -> str:
-        return f"{self.prefix}/{KIND_THETA}/*/*"
+        return f"{self.prefix}/{KIND_THETA}/*/*/*"
 
     def latest_all(self) -> str:
         return f"{self.prefix}/{KIND_LATEST}/*"
@@ -142,15 +154,18 @@ class Keys:
         kind = parts[2]
         if kind not in KEY_KINDS:
             raise ForeignKey(f"unknown key kind {kind[:64]!r} in {key[:200]!r}")
-        has_round = KEY_KINDS[kind]
-        if len(parts) != (5 if has_round else 4):
+        extra = KEY_KINDS[kind]
+        if len(parts) != 4 + extra:
             raise ForeignKey(f"wrong number of segments for a {kind} key: {key[:200]!r}")
         robot_id = _parse_number(parts[3])
         if robot_id is None:
             raise ForeignKey(f"bad robot id {parts[3][:32]!r} in {key[:200]!r}")
-        round_ = None
-        if has_round:
+        round_ = receiver = None
+        if extra:
             round_ = _parse_number(parts[4])
             if round_ is None:
                 raise ForeignKey(f"bad round {parts[4][:32]!r} in {key[:200]!r}")
-        return ParsedKey(kind, robot_id, round_)
+            receiver = _parse_number(parts[5])
+            if receiver is None:
+                raise ForeignKey(f"bad receiver id {parts[5][:32]!r} in {key[:200]!r}")
+        return ParsedKey(kind, robot_id, round_, receiver)

@@ -209,11 +209,14 @@ class AliveView:
     Times are ``time.monotonic()`` of this process; pass ``now`` explicitly in tests.
     """
 
-    def __init__(self, self_id: int, expiry_s: float = 2.0):
-        if expiry_s <= 0:
-            raise ValueError("expiry_s must be positive")
+    def __init__(self, self_id: int, expiry_s: float = 2.0, departure_grace_s: float = 1.0):
+        if expiry_s <= 0 or departure_grace_s < 0:
+            raise ValueError("expiry_s must be positive and departure_grace_s non-negative")
         self.self_id = self_id
         self.expiry_s = expiry_s
+        # A report sent just before a departure can arrive just after it: relayed evidence must be
+        # this much newer than a departure we saw ourselves before it counts.
+        self.departure_grace_s = departure_grace_s
         self._lock = threading.Lock()
         self._direct: frozenset[int] = frozenset()
         self._last_seen: dict[int, float] = {}  # freshest evidence (monotonic time)
@@ -239,8 +242,15 @@ class AliveView:
                 if i == self.self_id or i in self._direct:
                     continue
                 seen = now - max(float(age), 0.0)
-                if seen > self._left_at.get(i, float("-inf")) and seen > self._last_seen.get(i, float("-inf")):
+                left = self._left_at.get(i, float("-inf")) + self.departure_grace_s
+                if seen > left and seen > self._last_seen.get(i, float("-inf")):
                     self._last_seen[i] = seen
+
+    @property
+    def direct(self) -> frozenset[int]:
+        """Robots whose tokens this robot sees itself: the ones it can actually exchange with."""
+        with self._lock:
+            return self._direct
 
     def alive(self, now: float | None = None) -> frozenset[int]:
         now = time.monotonic() if now is None else now

@@ -90,7 +90,7 @@ def role_big_publisher(args) -> None:
         t0 = time.monotonic()
         data = codec.encode(msg, compression=args.compression, level=1)
         t1 = time.monotonic()
-        net.publish(net.keys.theta(0, 1), data)
+        net.publish(net.keys.theta(0, 1, to=1), data)
         t2 = time.monotonic()
         net.set_latest(data)
         emit("published", bytes=len(data), encode_s=t1 - t0, put_s=t2 - t1, t_put=t1)
@@ -159,7 +159,7 @@ def role_latest_server(args) -> None:
         for r in range(4):
             msg = ThetaSnapshot(helpers.SWARM, 0, r, 0, spec.signature(), helpers.small_tensors(seed=r))
             data = codec.encode(msg)
-            net.publish(net.keys.theta(0, r), data)
+            net.publish(net.keys.theta(0, r, to=0), data)
             net.set_latest(data)
         emit("ready", rounds=4)
         wait_for_stdin_close()
@@ -184,16 +184,16 @@ def role_late_joiner(args) -> None:
 def rogue_messages() -> list[tuple[str, str, bytes]]:
     """(expected outcome, key, bytes) the rogue sends, in order; the last one is a valid snapshot."""
     keys = helpers.keys()
-    out = [(reason, keys.theta(key_id, helpers.ROUND), data)
+    out = [(reason, keys.theta(key_id, helpers.ROUND, to=0), data)
            for _, reason, data, key_id in helpers.malformed_cases()]
     status = codec.encode(Status(helpers.SWARM, 1, helpers.ROUND, 0, 0, "train", 1.0, None, [0.0] * 7, [], 0, 0, {},
                                  "identity", 0.0, 0.0, 0.0))
     out += [
-        ("bad_kind", keys.theta(1, helpers.ROUND), status),
-        ("foreign_key", f"dinerf/{helpers.SWARM}/theta/abc/{helpers.ROUND}", helpers.valid_frame()),
-        ("stale_round", keys.theta(1, helpers.ROUND - 3), helpers.valid_frame(round=helpers.ROUND - 3)),
-        ("too_far_ahead", keys.theta(1, helpers.ROUND + 50), helpers.valid_frame(round=helpers.ROUND + 50)),
-        ("accepted", keys.theta(1, helpers.ROUND), helpers.valid_frame()),
+        ("bad_kind", keys.theta(1, helpers.ROUND, to=0), status),
+        ("foreign_key", f"dinerf/{helpers.SWARM}/theta/abc/{helpers.ROUND}/0", helpers.valid_frame()),
+        ("stale_round", keys.theta(1, helpers.ROUND - 3, to=0), helpers.valid_frame(round=helpers.ROUND - 3)),
+        ("too_far_ahead", keys.theta(1, helpers.ROUND + 50, to=0), helpers.valid_frame(round=helpers.ROUND + 50)),
+        ("accepted", keys.theta(1, helpers.ROUND, to=0), helpers.valid_frame()),
     ]
     return out
 
@@ -264,7 +264,7 @@ def role_self_check(args) -> None:
 
     net.subscribe(net.keys.theta_of(0), explode)
     sub = net.subscribe(net.keys.theta_of(0), lambda key, data: got.set())
-    net.publish(net.keys.theta(0, 1), b"x" * 10)
+    net.publish(net.keys.theta(0, 1, to=0), b"x" * 10)
     delivered = got.wait(5)
     time.sleep(0.2)
     errors = net.stats()["callback_errors"]
@@ -276,7 +276,7 @@ def role_self_check(args) -> None:
     net.close()
     net.close()
     try:
-        net.publish(net.keys.theta(0, 2), b"y")
+        net.publish(net.keys.theta(0, 2, to=0), b"y")
         after_close = "no error"
     except TransportError as exc:
         after_close = str(exc)

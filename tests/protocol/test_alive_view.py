@@ -38,7 +38,9 @@ def test_a_token_seen_leaving_overrides_older_relayed_evidence():
     v.set_direct({1}, now=0.0)
     v.set_direct(set(), now=1.0)  # robot 1 left at t=1
     v.merge({1: 0.2}, now=1.1)  # a neighbour's report from before the departure (t=0.9)
-    assert 1 not in v.alive(now=1.2)
+    v.merge({1: 0.0}, now=1.3)  # sent just before the departure, arrived after it: within the grace
+    assert 1 not in v.alive(now=1.4)
+    assert v.direct == frozenset()
     v.merge({1: 0.0}, now=5.0)  # robot 1 came back and someone sees it
     assert 1 in v.alive(now=5.1)
 

@@ -132,7 +132,7 @@ def test_keyframe_summary_point_cap():
 
 @pytest.mark.parametrize("name,reason,data,key_id", malformed_cases(), ids=[c[0] for c in malformed_cases()])
 def test_each_malformed_kind_is_rejected_with_its_reason(name, reason, data, key_id):
-    key = keys().parse(keys().theta(key_id, ROUND))
+    key = keys().parse(keys().theta(key_id, ROUND, to=0))
     with pytest.raises(Rejected) as exc:
         decode(data, expectation(), kind="theta", key=key)
     assert exc.value.reason == reason, (name, str(exc.value))
@@ -140,7 +140,7 @@ def test_each_malformed_kind_is_rejected_with_its_reason(name, reason, data, key
 
 
 def test_the_valid_frame_used_by_the_malformed_cases_is_accepted():
-    key = keys().parse(keys().theta(SENDER, ROUND))
+    key = keys().parse(keys().theta(SENDER, ROUND, to=0))
     assert decode(valid_frame(), expectation(), kind="theta", key=key).round == ROUND
 
 

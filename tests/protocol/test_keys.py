@@ -8,14 +8,15 @@ from protocol.keys import ForeignKey, Keys, ParsedKey
 def test_build_and_parse_round_trip():
     k = Keys("lab-1_A")
     assert k.alive(3) == "dinerf/lab-1_A/alive/3"
-    assert k.theta(3, 12) == "dinerf/lab-1_A/theta/3/12"
+    assert k.theta(3, 12, to=5) == "dinerf/lab-1_A/theta/3/12/5"
     assert k.latest(0) == "dinerf/lab-1_A/latest/0"
     assert k.status(7) == "dinerf/lab-1_A/status/7"
     assert k.keyframes(2) == "dinerf/lab-1_A/keyframes/2"
     assert k.alive_all() == "dinerf/lab-1_A/alive/*"
-    assert k.theta_of(4) == "dinerf/lab-1_A/theta/4/*"
+    assert k.theta_of(4) == "dinerf/lab-1_A/theta/4/*/*"
+    assert k.theta_for(4, 2) == "dinerf/lab-1_A/theta/4/*/2"
     assert k.status_all() == "dinerf/lab-1_A/status/*"
-    assert k.parse(k.theta(3, 12)) == ParsedKey("theta", 3, 12)
+    assert k.parse(k.theta(3, 12, to=5)) == ParsedKey("theta", 3, 12, 5)
     assert k.parse(k.alive(0)) == ParsedKey("alive", 0, None)
     for build, kind in [(k.latest, "latest"), (k.status, "status"), (k.keyframes, "keyframes")]:
         assert k.parse(build(2**31 - 1)) == ParsedKey(kind, 2**31 - 1, None)
@@ -32,19 +33,21 @@ def test_invalid_ids_are_refused_when_building(robot_id):
     with pytest.raises(ValueError):
         Keys("s").alive(robot_id)
     with pytest.raises(ValueError):
-        Keys("s").theta(0, robot_id)
+        Keys("s").theta(0, robot_id, to=1)
 
 
 @pytest.mark.parametrize("key", [
-    "dinerf/other/theta/1/2",      # other swarm
-    "robots/s/theta/1/2",          # other root
+    "dinerf/other/theta/1/2/3",    # other swarm
+    "robots/s/theta/1/2/3",        # other root
     "dinerf/s/weights/1",          # unknown kind
     "dinerf/s/theta/1",            # round missing
+    "dinerf/s/theta/1/2",          # receiver missing
+    "dinerf/s/theta/1/2/x",        # bad receiver
     "dinerf/s/alive/1/2",          # extra segment
-    "dinerf/s/theta/01/2",         # non-canonical id
-    "dinerf/s/theta/-1/2",
-    "dinerf/s/theta/1/x",
-    "dinerf/s/theta/*/2",          # wildcard is not a concrete key
+    "dinerf/s/theta/01/2/3",       # non-canonical id
+    "dinerf/s/theta/-1/2/3",
+    "dinerf/s/theta/1/x/3",
+    "dinerf/s/theta/*/2/3",        # wildcard is not a concrete key
     "dinerf/s/alive/99999999999",  # out of range
     "dinerf/s",
     "",
