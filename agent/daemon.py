@@ -60,6 +60,9 @@ class DaemonConfig:
     eval_every: int = 1  # rounds between PSNR evaluations on own held-out views (0 = never)
     keep_rounds: bool = False  # also save rounds/<k>.pt (field + pose) for per-round reports
     join_timeout_s: float = 5.0  # query timeout for neighbours' newest snapshots
+    pull_after_s: float = 2.0  # a just-reconnected neighbour's snapshot missing this long is pulled
+    pull_window_s: float = 15.0  # "just reconnected": its token appeared less than this ago
+    resend_delay_s: float = 1.0  # re-push our snapshot this long after a neighbour's link appears
     # Initial relative pose: "identity" (the paper) or "coarse": match compact keyframe summaries
     # (descriptors + 3-D points, never images) with neighbours whose pose is already known.
     initial_pose: Literal["identity", "coarse"] = "identity"
@@ -84,10 +87,74 @@ class Network(Protocol):
     def declare_alive(self) -> None: ...
     def watch_alive(self, callback: Callable[[frozenset[int]], None]) -> Any: ...
     def subscribe(self, key_expr: str, callback: Callable[[str, bytes], None]) -> Any: ...
-    def publish(self, key: str, data: bytes) -> None: ...
+    def publish(self, key: str, data: bytes, block: bool = True) -> None: ...
     def set_latest(self, data: bytes | None) -> None: ...
     def query(self, key: str, timeout: float | None = None) -> bytes | None: ...
     def stats(self) -> dict[str, Any]: ...
+
+
+class NeighbourSender:
+    """Delivers this robot's newest snapshot to one neighbour, from its own thread.
+
+    A put with congestion control BLOCK can wait on a cut or congested link for seconds; with
+    one sender per neighbour (and keys addressed to that neighbour) it delays that neighbour's
+    copy only, never the round loop nor the other neighbours. Only the newest snapshot is kept:
+    an older one still waiting is replaced, since nobody wants it any more.
+    """
+
+    def __init__(self, net: "Network", key_for_round: Callable[[int], str], log: Callable[[str], None]) -> None:
+        self._net = net
+        self._key = key_for_round
+        self._log = log
+        self._cond = threading.Condition()
+        self._slot: tuple[int, bytes] | None = None
+        self._not_before = 0.0
+        self._busy = False
+        self._closed = False
+        self.last_seconds = 0.0  # duration of the last put (how long the link held it)
+        self._thread = threading.Thread(target=self._run, name="sender", daemon=True)
+        self._thread.start()
+
+    def offer(self, round_index: int, data: bytes, delay_s: float = 0.0) -> None:
+        with self._cond:
+            if self._slot is not None and self._slot[0] > round_index:
+                return  # a newer snapshot is already waiting
+            self._slot = (round_index, data)
+            self._not_before = time.monotonic() + delay_s
+            self._cond.notify_all()
+
+    def idle(self, timeout: float) -> bool:
+        """Wait until nothing is pending or in flight (e.g. before exiting)."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._slot is None and not self._busy, timeout)
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._slot is not None or self._closed)
+                if self._closed:
+                    return
+                pause = self._not_before - time.monotonic()
+                if pause > 0:
+                    self._cond.wait(pause)  # an offer meanwhile may replace the slot
+                    continue
+                round_index, data = self._slot
+                self._slot = None
+                self._busy = True
+            t0 = time.monotonic()
+            try:
+                self._net.publish(self._key(round_index), data)
+            except Exception as e:  # the transport is closing, or the link is gone: log, go on
+                self._log(f"snapshot of round {round_index} not sent: {type(e).__name__}: {e}")
+            self.last_seconds = time.monotonic() - t0
+            with self._cond:
+                self._busy = False
+                self._cond.notify_all()
 
 
 class Stop(Exception):
@@ -185,6 +252,9 @@ class Daemon:
         self._heartbeat: threading.Thread | None = None
         self._last_heard: dict[int, ThetaSnapshot] = {}
         self._neighbour_status: dict[int, Status] = {}
+        self._senders: dict[int, NeighbourSender] = {}
+        self._latest_snapshot: tuple[int, bytes] | None = None  # (round, encoded) last published
+        self._appeared: dict[int, float] = {}  # neighbour -> when its token last (re)appeared
         self._last_status["alignment"] = "identity" if cfg.initial_pose == "identity" else "pending"
         with torch.no_grad():
             self._last_status["pose7"] = pose_summary(self.trainer.pose.matrix())["params7"]
@@ -193,6 +263,8 @@ class Daemon:
     def _on_theta(self, key: str, data: bytes) -> None:
         try:
             parsed = self.keys.parse(key)
+            if parsed.receiver != self.robot_id:
+                raise Rejected("bad_kind", f"snapshot addressed to robot {parsed.receiver}")
             msg = codec.decode(data, self.expect, kind="theta", key=parsed)
             self.mailbox.offer(msg.sender, msg.round, msg)
         except Rejected as e:
@@ -217,7 +289,16 @@ class Daemon:
             self._neighbour_status[msg.sender] = msg
 
     def _on_alive(self, ids: frozenset[int]) -> None:
+        before = self.alive.direct
         self.alive.set_direct(ids)
+        now = time.monotonic()
+        for j in (ids - before) & self.membership.neighbours:
+            # A link (re)appeared: snapshots pushed meanwhile found no subscriber. Push ours again
+            # once the new session's subscriptions are through, and let the barrier pull theirs.
+            self._appeared[j] = now
+            latest = self._latest_snapshot
+            if latest is not None and j in self._senders:
+                self._senders[j].offer(*latest, delay_s=self.cfg.resend_delay_s)
         self._refresh_membership()
 
     def _reject(self, reason: str, detail: str) -> None:
@@ -278,34 +359,88 @@ class Daemon:
         while not self._stop.is_set():
             try:
                 self._refresh_membership()
-                self.net.publish(self.keys.status(self.robot_id), codec.encode(self._status_message()))
+                self.net.publish(self.keys.status(self.robot_id), codec.encode(self._status_message()), block=False)
             except Exception as e:  # never let telemetry kill the robot
                 self.log(f"[robot {self.robot_id}] heartbeat failed: {type(e).__name__}: {e}")
             self._stop.wait(self.cfg.heartbeat_s)
 
     # ------------------------------------------------------------------ snapshots
-    def _publish_theta(self, round_index: int) -> int:
+    def _publish_theta(self, round_index: int) -> None:
+        """Encode theta once; serve it as `latest`; hand a copy to every neighbour's sender."""
         msg = ThetaSnapshot(swarm=self.swarm.name, sender=self.robot_id, round=round_index,
                             epoch=self.membership.epoch, signature=self.spec.signature(),
                             tensors=_to_numpy(self.trainer.theta()))
         data = codec.encode(msg, wire_dtype=self.cfg.wire_dtype, compression=self.cfg.compression, spec=self.spec)
         self.net.set_latest(data)
-        self.net.publish(self.keys.theta(self.robot_id, round_index), data)
-        return len(data) * max(len(self.membership.live_neighbours), 1)
+        self._latest_snapshot = (round_index, data)
+        for sender in self._senders.values():
+            sender.offer(round_index, data)
+
+    def _reachable_neighbours(self) -> set[int]:
+        """Neighbours whose tokens we see directly: only they can deliver (gossip says who is
+        alive somewhere, e.g. behind a cut link, which matters for the reference, not here)."""
+        return set(self.membership.live_neighbours & self.alive.direct)
 
     def _barrier(self, round_index: int) -> tuple[dict[int, ThetaSnapshot], float]:
-        """Neighbours' round-k snapshots, waiting until every live neighbour answered or the deadline."""
-        got = self.mailbox.wait(round_index, lambda: set(self.membership.live_neighbours), self.cfg.round_timeout_s)
+        """Neighbours' round-k snapshots, waiting until every reachable neighbour answered or the deadline.
+
+        Pushes can be lost: a snapshot published while a link was being re-established found no
+        subscriber yet. So a neighbour still missing after ``pull_after_s`` is asked for its
+        newest snapshot through its ``latest`` queryable. A neighbour whose newest snapshot is
+        already for a later round passed round k without us (its round-k push was lost while the
+        link was down) and waits for *our* next snapshot: its newer snapshot stands in for round k,
+        or both sides would wait out ``round_timeout_s``.
+        """
+
+        def awaited() -> set[int]:
+            return {j for j in self._reachable_neighbours()
+                    if (r := self.mailbox.newest_round(j)) is None or r <= round_index}
+
+        t0 = time.monotonic()
+        deadline = t0 + self.cfg.round_timeout_s
+        while True:
+            slice_s = max(min(self.cfg.pull_after_s, deadline - time.monotonic()), 0.0)
+            got = self.mailbox.wait(round_index, awaited, slice_s)
+            if got.complete or time.monotonic() >= deadline or self._stop.is_set():
+                break
+            # Pull only from neighbours that just (re)connected: a link that is dying still shows
+            # its token until the lease expires, and a query over it would only block.
+            recent = {j for j in got.missing
+                      if time.monotonic() - self._appeared.get(j, -1e9) < self.cfg.pull_window_s}
+            for j in sorted(recent):
+                self._pull_latest(j, min_round=round_index)
+        got = self.mailbox.wait(round_index, awaited, 0.0)
+        got.waited_s = time.monotonic() - t0
         if not got.complete:
             self.log(f"[robot {self.robot_id}] round {round_index}: no snapshot from {sorted(got.missing)} "
                      f"within {self.cfg.round_timeout_s:.0f} s; going on with {sorted(got.items)}")
-        heard = {j: got.items[j] for j in sorted(got.items) if j in self.membership.neighbours}
+        items = dict(got.items)
+        for j in self._reachable_neighbours() - items.keys():
+            newest = self.mailbox.newest_items().get(j)
+            if newest is not None and newest[0] > round_index:
+                items[j] = newest[1]
+                self._event("ahead", sender=j, snapshot_round=newest[0])
+        heard = {j: items[j] for j in sorted(items) if j in self.membership.neighbours}
         return heard, got.waited_s
+
+    def _pull_latest(self, j: int, min_round: int) -> None:
+        """Fetch neighbour j's newest snapshot (queryable) into the mailbox if it is not older than min_round."""
+        data = self.net.query(self.keys.latest(j), timeout=self.cfg.join_timeout_s)
+        if data is None:
+            return
+        try:
+            msg = codec.decode(data, self.expect, kind="theta")
+        except Rejected as e:
+            self._reject(e.reason, f"latest of robot {j}: {e.detail}")
+            return
+        if msg.sender == j and msg.round >= min_round:
+            self._offer_quietly(j, msg)
+            self._event("pulled", sender=j, snapshot_round=msg.round)
 
     def _join_current_round(self) -> None:
         """Late join / restart: fetch the neighbours' newest snapshots and move to their round."""
         newest: dict[int, ThetaSnapshot] = {}
-        for j in sorted(self.membership.live_neighbours):
+        for j in sorted(self._reachable_neighbours()):
             data = self.net.query(self.keys.latest(j), timeout=self.cfg.join_timeout_s)
             if data is None:
                 continue
@@ -345,9 +480,13 @@ class Daemon:
             pass
 
     def _catch_up(self, heard: dict[int, ThetaSnapshot]) -> dict[int, ThetaSnapshot]:
-        """If neighbours are ahead of us (we were slow or cut off), jump to their newest round."""
-        ahead = {j: r for j in self.membership.live_neighbours
-                 if (r := self.mailbox.newest_round(j)) is not None and r > self.round}
+        """If neighbours moved on without us (we were slow or cut off), jump to their newest round.
+
+        A neighbour one round ahead is normal: it is waiting at its barrier for our next snapshot.
+        Two or more ahead means it passed a barrier without us and no longer waits for that round.
+        """
+        ahead = {j: r for j in self._reachable_neighbours()
+                 if (r := self.mailbox.newest_round(j)) is not None and r > self.round + 1}
         if not ahead:
             return heard
         target = max(ahead.values())
@@ -356,6 +495,9 @@ class Daemon:
         self.log(f"[robot {self.robot_id}] neighbours are at round {target}; skipping from {self.round}")
         self.round = target
         self.mailbox.advance(target)
+        # Neighbours already at `target` are waiting for our round-`target` snapshot: send our
+        # current theta as such at once, or they time out and the swarm stays out of phase.
+        self._publish_theta(target)
         return dict(sorted(items.items()))
 
     # ------------------------------------------------------------------ coarse initial pose
@@ -507,8 +649,11 @@ class Daemon:
         self.net.declare_alive()
         self.net.watch_alive(self._on_alive)
         for j in sorted(self.membership.neighbours):
-            self.net.subscribe(self.keys.theta_of(j), self._on_theta)
+            self.net.subscribe(self.keys.theta_for(j, self.robot_id), self._on_theta)
             self.net.subscribe(self.keys.status(j), self._on_status)
+            self._senders[j] = NeighbourSender(
+                self.net, lambda k, j=j: self.keys.theta(self.robot_id, k, to=j),
+                lambda text: self.log(f"[robot {self.robot_id}] to robot {j}: {text}"))
         self._heartbeat = threading.Thread(target=self._heartbeat_loop, name="heartbeat", daemon=True)
         self._heartbeat.start()
         completed = 0
@@ -531,12 +676,17 @@ class Daemon:
                 stats0 = self.net.stats()
                 heard = self._last_heard
             self._write_done()
-            self._stop.wait(cfg.linger_s)  # neighbours may still be fetching our last snapshot
+            deadline = time.monotonic() + cfg.linger_s  # our last snapshot must still get out
+            for sender in self._senders.values():
+                sender.idle(max(deadline - time.monotonic(), 0.0))
+            self._stop.wait(max(deadline - time.monotonic(), 0.0))
         except Stop:
             self.log(f"[robot {self.robot_id}] stopped at round {self.round} (checkpoint of round "
                      f"{self.round} kept)")
         finally:
             self._stop.set()
+            for sender in self._senders.values():
+                sender.close()
             if self._heartbeat is not None:
                 self._heartbeat.join(timeout=2 * cfg.heartbeat_s + 1)
             self._events.close()
@@ -580,8 +730,10 @@ class Daemon:
             "pose_rotation_deg": pose["rotation_deg"], "pose_translation": pose["translation"],
             "pose_scale": pose["scale"], "reference": self.membership.reference, "elected": self.elected,
             "epoch": self.membership.epoch, "live_neighbours": sorted(self.membership.live_neighbours),
+            "reachable": sorted(self._reachable_neighbours()),
             "heard": sorted(heard), "bytes_in": {str(j): b for j, b in bytes_in.items() if b},
             "bytes_out": bytes_out, "seconds_compute": t_compute, "seconds_wait": waited,
+            "seconds_last_put": {str(j): round(x.last_seconds, 3) for j, x in self._senders.items()},
             "steps": stats.steps, "seconds_per_step": stats.seconds / max(stats.steps, 1),
             "rejected": dict(self.rejected), "alignment": self._last_status.get("alignment"),
         }
@@ -591,7 +743,7 @@ class Daemon:
         self._set_status(phase="round_done", loss=stats.loss, psnr=psnr, heard=sorted(heard),
                          bytes_in_total=net["bytes_in_total"], bytes_out_total=net["bytes_out_total"],
                          seconds_compute=t_compute, seconds_wait=waited, pose7=pose["params7"])
-        live = sorted(self.membership.live_neighbours)
+        live = sorted(self._reachable_neighbours())
         psnr_text = f"{psnr:5.2f} dB" if psnr is not None else "   n/a  "
         self.log(
             f"[robot {self.robot_id}] round {self.round:3d}/{self.training.rounds} | loss {stats.loss:.5f} | "

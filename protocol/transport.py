@@ -6,8 +6,8 @@
     with ZenohTransport(cfg, Keys("lab"), robot_id=1) as net:
         net.declare_alive()
         net.watch_alive(lambda ids: membership.update(ids))      # full set on every change
-        net.subscribe(keys.theta_of(0), on_bytes)                 # on_bytes(key: str, data: bytes)
-        net.publish(keys.theta(1, 7), encode(snapshot))           # BLOCK + reliable
+        net.subscribe(keys.theta_for(0, 1), on_bytes)             # on_bytes(key: str, data: bytes)
+        net.publish(keys.theta(1, 7, to=0), encode(snapshot))     # BLOCK + reliable
         net.set_latest(encoded)                                   # served on latest/1
         data = net.query(keys.latest(0), timeout=5.0)             # bytes or None
 
@@ -62,7 +62,14 @@ class TransportConfig:
     connect: list[str] = field(default_factory=list)
     multicast_scouting: bool = False
     lease_ms: int = 2000
-    block_wait_before_close_ms: int = 20_000
+    # A put with BLOCK waits at most this long for room in a link's queue, then Zenoh closes the
+    # link. A slow but live link keeps draining well within it; a cut link must not hold a
+    # snapshot (and its sender) for long. Zenoh's default is 5 s.
+    block_wait_before_close_ms: int = 5_000
+    # Reconnect backoff for configured endpoints after a session is lost (a healed link is
+    # used again within about reconnect_max_ms).
+    reconnect_init_ms: int = 250
+    reconnect_max_ms: int = 2_000
     query_timeout_s: float = 10.0
     max_message_bytes: int = 512 * MiB
     # TLS (endpoints then use tls/host:port). cert/key are used for both listening and connecting.
@@ -87,6 +94,9 @@ class TransportConfig:
             raise ValueError("lease_ms must be an integer >= 100")
         if type(self.block_wait_before_close_ms) is not int or self.block_wait_before_close_ms <= 0:
             raise ValueError("block_wait_before_close_ms must be a positive integer")
+        if not (type(self.reconnect_init_ms) is int and type(self.reconnect_max_ms) is int
+                and 0 < self.reconnect_init_ms <= self.reconnect_max_ms):
+            raise ValueError("need integers 0 < reconnect_init_ms <= reconnect_max_ms")
         if not self.query_timeout_s > 0:
             raise ValueError("query_timeout_s must be positive")
         if type(self.max_message_bytes) is not int or self.max_message_bytes < 64 * 1024:
@@ -119,6 +129,9 @@ class TransportConfig:
             "transport/link/tx/queue/congestion_control/block/wait_before_close": json.dumps(
                 self.block_wait_before_close_ms * 1000),
             "transport/link/rx/max_message_size": json.dumps(self.max_message_bytes),
+            "connect/retry": json.dumps({"period_init_ms": self.reconnect_init_ms,
+                                         "period_max_ms": self.reconnect_max_ms,
+                                         "period_increase_factor": 2.0}),
         }
         if self.tls_root_ca:
             s["transport/link/tls/root_ca_certificate"] = json.dumps(self.tls_root_ca)
@@ -164,7 +177,7 @@ class Subscription:
 class ZenohTransport:
     """One robot's Zenoh peer session (see the module docstring)."""
 
-    #: Declared publishers kept alive (keys change every round: theta/<id>/<round>).
+    #: Declared publishers kept alive (keys change every round: theta/<id>/<round>/<to>).
     PUBLISHER_CACHE = 4
 
     def __init__(self, cfg: TransportConfig, keys: Keys, robot_id: int):
@@ -188,7 +201,7 @@ class ZenohTransport:
         self._foreign_keys = 0
         self._served: dict[str, bytes | None] = {}
         self._queryables: dict[str, Any] = {}
-        self._publishers: dict[str, Any] = {}
+        self._publishers: dict[tuple[str, bool], Any] = {}
         self._publishers_lock = threading.Lock()
 
     # ------------------------------------------------------------------ lifecycle
@@ -341,16 +354,16 @@ class ZenohTransport:
         except ForeignKey:
             return "other"
 
-    def _publisher(self, key: str) -> Any:
-        """A declared publisher for ``key`` (reliable, BLOCK); the few most recent keys are kept."""
+    def _publisher(self, key: str, block: bool) -> Any:
+        """A declared publisher for ``key`` (reliable; BLOCK or DROP); the few most recent keys are kept."""
         evicted = []
         with self._publishers_lock:  # not the counters lock: Zenoh callbacks never wait on this one
-            pub = self._publishers.pop(key, None)
+            pub = self._publishers.pop((key, block), None)
             if pub is None:
+                congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
                 pub = self.session.declare_publisher(
-                    key, congestion_control=zenoh.CongestionControl.BLOCK,
-                    reliability=zenoh.Reliability.RELIABLE)
-            self._publishers[key] = pub  # most recent last
+                    key, congestion_control=congestion, reliability=zenoh.Reliability.RELIABLE)
+            self._publishers[(key, block)] = pub  # most recent last
             while len(self._publishers) > self.PUBLISHER_CACHE:
                 evicted.append(self._publishers.pop(next(iter(self._publishers))))
         for old in evicted:
@@ -360,10 +373,15 @@ class ZenohTransport:
                 log.debug("undeclare publisher: %s", exc)
         return pub
 
-    def publish(self, key: str, data: bytes) -> None:
-        """Reliable put that blocks rather than drops when the link is congested."""
+    def publish(self, key: str, data: bytes, block: bool = True) -> None:
+        """Reliable put that blocks rather than drops when the link is congested (``block``).
+
+        ``block=False`` is for periodic messages (status): a put that matches a subscriber
+        behind a dead link would otherwise wait until Zenoh gives up on that link (seconds),
+        and the next heartbeat makes up for a dropped one anyway.
+        """
         try:
-            self._publisher(key).put(data)
+            self._publisher(key, block).put(data)
         except TransportError:
             raise
         except Exception as exc:
@@ -450,10 +468,13 @@ class ZenohTransport:
 
     def _get(self, key_expr: str, timeout: float | None, first_only: bool):
         try:
-            # replies follow the query's QoS: BLOCK so a large snapshot reply is never dropped
+            # Replies follow the query's QoS, and the replier sends them from a Zenoh runtime thread:
+            # with BLOCK, a reply queued towards a link that was just cut stalled that runtime (the
+            # replier's other links stopped even their keep-alives and died too: measured on a ring
+            # with one link cut). DROP only drops when that link's queue is full; the caller asks again.
             replies = self.session.get(key_expr, timeout=timeout or self.cfg.query_timeout_s,
                                        target=zenoh.QueryTarget.ALL,
-                                       congestion_control=zenoh.CongestionControl.BLOCK)
+                                       congestion_control=zenoh.CongestionControl.DROP)
         except Exception as exc:
             raise TransportError(f"get on {key_expr} failed: {exc}") from None
         for reply in replies:

@@ -19,7 +19,7 @@ def test_defaults_map_onto_zenoh_keys():
     assert json.loads(s["scouting/multicast/enabled"]) is False
     assert json.loads(s["transport/link/tx/lease"]) == 2000
     # Zenoh counts wait_before_close in microseconds
-    assert json.loads(s["transport/link/tx/queue/congestion_control/block/wait_before_close"]) == 20_000_000
+    assert json.loads(s["transport/link/tx/queue/congestion_control/block/wait_before_close"]) == 5_000_000
     conf = cfg.to_zenoh()  # Zenoh accepts every entry
     assert json.loads(conf.get_json("transport/link/tx/lease")) == 2000
     assert json.loads(conf.get_json("transport/link/rx/max_message_size")) == cfg.max_message_bytes

@@ -30,7 +30,9 @@ EXPECTED_REASONS = (
 )
 
 
-def forge(spec: ModelSpec, swarm: str, keys, j: int, other: int, k: int, tensors: dict) -> list[tuple[str, str, bytes]]:
+def forge(spec: ModelSpec, swarm: str, keys, j: int, other: int, k: int, tensors: dict, to: int
+          ) -> list[tuple[str, str, bytes]]:
+    """Messages forged as robot j's, on the keys robot ``to`` listens to."""
     sig = spec.signature()
 
     def snap(**kw) -> ThetaSnapshot:
@@ -48,7 +50,7 @@ def forge(spec: ModelSpec, swarm: str, keys, j: int, other: int, k: int, tensors
     flipped[-9] ^= 0x10
     other_spec = ModelSpec(spec.params, {**dict(spec.arch), "forged": True})
     status_ok = Status(swarm, j, k, 0, 0, "x", 1.0, None, [0.0] * 7, [], 0, 0, {}, "x", 0.0, 0.0, 0.0)
-    t = keys.theta(j, k)
+    t = keys.theta(j, k, to=to)
     return [
         ("wrong_swarm", t, codec.encode(snap(swarm="not-this-swarm"))),
         ("bad_signature", t, codec.encode(snap(signature=other_spec.signature()))),
@@ -60,9 +62,9 @@ def forge(spec: ModelSpec, swarm: str, keys, j: int, other: int, k: int, tensors
         ("garbage", t, b"DNRF" + (4).to_bytes(4, "little") + b"\xc1\xc1\xc1\xc1"),
         ("decompression_bomb", t, reframe(good, payload=rle_zstd_frame(2**31, True))),
         ("too_large", t, reframe(good, raw_length=2**40)),
-        ("sender_mismatch", keys.theta(j, k), codec.encode(snap(sender=other))),
-        ("stale_round", keys.theta(j, 0), codec.encode(snap(round=0))) if k >= 2 else None,
-        ("too_far_ahead", keys.theta(j, k + 60), codec.encode(snap(round=k + 60))),
+        ("sender_mismatch", t, codec.encode(snap(sender=other))),
+        ("stale_round", keys.theta(j, 0, to=to), codec.encode(snap(round=0))) if k >= 2 else None,
+        ("too_far_ahead", keys.theta(j, k + 60, to=to), codec.encode(snap(round=k + 60))),
         ("bad_kind", t, codec.encode(status_ok)),
         ("bad_field", keys.status(j), reframe(codec.encode(status_ok), raw=b"\x93\x01\x02\x03")),
     ]
@@ -102,9 +104,12 @@ def main(swarm_toml: str, duration: float) -> None:
         for j in ids:
             other = next(i for i in ids if i != j)
             k = rounds_seen[j] + 1
-            for item in forge(spec, cfg.swarm.name, keys, j, other, k, tensors):
-                if item is not None:
-                    net.publish(item[1], item[2])
+            for victim in ids:
+                if victim == j:
+                    continue
+                for item in forge(spec, cfg.swarm.name, keys, j, other, k, tensors, to=victim):
+                    if item is not None:
+                        net.publish(item[1], item[2])
         bursts += 1
         print(json.dumps({"burst": bursts, "rounds": rounds_seen}), flush=True)
         time.sleep(0.3)

@@ -46,7 +46,7 @@ def test_three_robots_on_a_line_match_the_in_process_simulation(tmp_path):
     for i in swarm.robots:
         tel = swarm.telemetry(i)
         assert [t["round"] for t in tel] == [1, 2, 3, 4, 5]
-        assert all(t["heard"] == t["live_neighbours"] for t in tel), "a snapshot was missed"
+        assert all(t["heard"] == t["reachable"] == t["live_neighbours"] for t in tel), "a snapshot was missed"
         per_link = {j: statistics.fmean(t["bytes_in"].get(j, 0) for t in tel[1:]) for j in map(str, tel[0]["heard"])}
         compute = statistics.fmean(t["seconds_compute"] for t in tel)
         wait = statistics.fmean(t["seconds_wait"] for t in tel)
