@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/dinerf-agent scenario run quickstart --out runs/quickstart
+	$(VENV)/bin/dinerf-agent scenario run quickstart --out runs/quickstart --force
 
 test: $(STAMP)
 	$(PY) -m pytest -q

@@ -185,7 +185,7 @@ class ScenarioRunner:
         self.spec = spec
         self.mode = mode or spec.run.mode
         spec.check_mode(self.mode)
-        self.out = Path(out)
+        self.out = Path(out).resolve()  # the robots run with the output folder as their cwd
         self.up_command = up_command or default_up_command
         self.echo = echo
         self.poll_s = poll_s

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import json
 import subprocess
 import sys
@@ -47,8 +48,10 @@ render_views = 2
 """
 
 
-def agent(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", ENTRY, *args], capture_output=True, text=True, cwd=ROOT, timeout=timeout)
+def agent(*args: str, timeout: float = 300, cwd: Path = ROOT) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run([sys.executable, "-c", ENTRY, *args], capture_output=True, text=True, cwd=cwd, timeout=timeout,
+                          env=env)
 
 
 def one_line_error(p: subprocess.CompletedProcess) -> str:
@@ -86,7 +89,7 @@ def test_tiny_run_on_loopback_writes_the_report(tmp_path):
     scen = tmp_path / "scenario.toml"
     scen.write_text(TINY)
     out = tmp_path / "out"
-    p = agent("scenario", "run", str(scen), "--out", str(out))
+    p = agent("scenario", "run", str(scen), "--out", "out", cwd=tmp_path)  # relative, as in the README
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     assert "completed: all robots finished" in p.stdout
     report = json.loads((out / "report.json").read_text())
