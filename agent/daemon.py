@@ -44,6 +44,7 @@ from protocol.messages import ModelSpec, Rejected, Status, ThetaSnapshot
 from protocol.rounds import Mailbox
 
 CHECKPOINT = "checkpoint.pt"
+SFM_CACHE = "sfm"  # in the run folder: an images-only robot's SfM, computed once, reused on restart
 
 
 @dataclass
@@ -772,7 +773,7 @@ def load_for_eval(run_dir: str | Path, data_dir: str | Path, round: int | None =
     run_dir = Path(run_dir)
     state = torch.load(run_dir / CHECKPOINT, map_location="cpu", weights_only=False)
     training: SwarmTrainingConfig = state["training"]
-    views = load_views(data_dir)
+    views = load_views(data_dir, sfm_cache_dir=run_dir / SFM_CACHE)  # images-only: the SfM of the run
     setup = build_robot(int(state["robot_id"]), views, state["box_from_shared"], training)
     trainer = setup.trainer
     trainer.load_state_dict(state["trainer"])

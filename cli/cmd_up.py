@@ -28,7 +28,7 @@ def up(
     overrides: list[str] = typer.Option([], "--set", help="Override a swarm-file setting, e.g. --set training.rounds=5 (repeatable)."),
 ) -> None:
     """Join the swarm and train: one robot's daemon (resumes from --run-dir if it holds a checkpoint)."""
-    from agent.daemon import Daemon
+    from agent.daemon import SFM_CACHE, Daemon
     from agent.data.folder import read_scene
     from agent.data.loaders import load_views
     from cli.swarm_file import find_swarm_file, load_swarm_file
@@ -44,8 +44,8 @@ def up(
     if robot_id not in cfg.swarm.robots:
         raise UserError(f"--id {robot_id} is not one of the swarm's robots {cfg.swarm.robots} ({swarm_path})")
     scene = read_scene(base_dir / cfg.swarm.scene)
-    views = load_views(data)
     run_dir = run_dir or Path("runs") / cfg.swarm.name / f"robot{robot_id}"
+    views = load_views(data, sfm_cache_dir=run_dir / SFM_CACHE)  # a folder of images only: SfM, cached
     transport_cfg = cfg.transport_for(robot_id, listen, connect)
 
     try:
