@@ -456,25 +456,29 @@ class ZenohTransport:
         """Serve our encoded keyframe summary on ``keyframes/<robot_id>``."""
         self._serve(self.keys.keyframes(self.robot_id), data)
 
-    def query(self, key: str, timeout: float | None = None) -> bytes | None:
-        """First reply to a get on ``key``, or None if nobody answered before the timeout."""
-        for _, data in self._get(key, timeout, first_only=True):
+    def query(self, key: str, timeout: float | None = None, block: bool = True) -> bytes | None:
+        """First reply to a get on ``key``, or None if nobody answered before the timeout.
+
+        Replies follow the query's congestion control, and the replier sends them from a Zenoh
+        runtime thread. ``block=True`` (a large snapshot is never dropped) is for a link known to
+        be up, e.g. at start; ``block=False`` for a link that may be dying: a BLOCK reply queued
+        towards a link that was just cut stalled the replier's runtime, and its healthy links
+        missed their keep-alives and died too (measured on a ring with one link cut). DROP drops
+        a reply only when that link's queue is full; the caller asks again.
+        """
+        for _, data in self._get(key, timeout, first_only=True, block=block):
             return data
         return None
 
     def query_all(self, key_expr: str, timeout: float | None = None) -> list[tuple[str, bytes]]:
         """Every (key, data) reply to a get on ``key_expr`` (e.g. all robots' latest snapshots)."""
-        return list(self._get(key_expr, timeout, first_only=False))
+        return list(self._get(key_expr, timeout, first_only=False, block=True))
 
-    def _get(self, key_expr: str, timeout: float | None, first_only: bool):
+    def _get(self, key_expr: str, timeout: float | None, first_only: bool, block: bool):
+        congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         try:
-            # Replies follow the query's QoS, and the replier sends them from a Zenoh runtime thread:
-            # with BLOCK, a reply queued towards a link that was just cut stalled that runtime (the
-            # replier's other links stopped even their keep-alives and died too: measured on a ring
-            # with one link cut). DROP only drops when that link's queue is full; the caller asks again.
             replies = self.session.get(key_expr, timeout=timeout or self.cfg.query_timeout_s,
-                                       target=zenoh.QueryTarget.ALL,
-                                       congestion_control=zenoh.CongestionControl.DROP)
+                                       target=zenoh.QueryTarget.ALL, congestion_control=congestion)
         except Exception as exc:
             raise TransportError(f"get on {key_expr} failed: {exc}") from None
         for reply in replies:
