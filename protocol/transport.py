@@ -15,7 +15,9 @@ Why these choices:
 
 - Snapshots are published with ``CongestionControl.BLOCK`` and reliable delivery: with the
   default DROP a 64 MB put is silently lost (zenoh#2258). BLOCK closes a link that stays
-  blocked longer than ``block_wait_before_close_ms``, so that is set generously.
+  blocked longer than ``block_wait_before_close_ms`` (5 s: a live link drains well within it,
+  and a cut one must not hold its sender long). Periodic messages (status) and replies to
+  queries over a link that may be dying use DROP: a blocked reply stalls Zenoh's runtime.
 - The lease (``lease_ms``, ~2 s) bounds how long a hung robot or a cut link looks alive; a
   killed process is seen at once because its TCP link closes.
 - ``transport/link/rx/max_message_size`` is set to ``max_message_bytes`` so Zenoh itself refuses
