@@ -416,26 +416,32 @@ class Daemon:
             self.log(f"[robot {self.robot_id}] round {round_index}: no snapshot from {sorted(got.missing)} "
                      f"within {self.cfg.round_timeout_s:.0f} s; going on with {sorted(got.items)}")
         items = dict(got.items)
+        newest_of = self.mailbox.newest_items()
         for j in self._reachable_neighbours() - items.keys():
-            newest = self.mailbox.newest_items().get(j)
+            newest = newest_of.get(j)
             if newest is not None and newest[0] > round_index:
                 items[j] = newest[1]
                 self._event("ahead", sender=j, snapshot_round=newest[0])
         heard = {j: items[j] for j in sorted(items) if j in self.membership.neighbours}
         return heard, got.waited_s
 
-    def _pull_latest(self, j: int, min_round: int) -> None:
-        """Fetch neighbour j's newest snapshot (queryable) into the mailbox if it is not older than min_round."""
-        # block=False: the link to j has just come back and may go again (see ZenohTransport.query)
-        data = self.net.query(self.keys.latest(j), timeout=self.cfg.join_timeout_s, block=False)
+    def _fetch_latest(self, j: int, block: bool = True) -> ThetaSnapshot | None:
+        """Neighbour j's newest snapshot from its ``latest`` queryable, validated; None if none came."""
+        data = self.net.query(self.keys.latest(j), timeout=self.cfg.join_timeout_s, block=block)
         if data is None:
-            return
+            return None
         try:
             msg = codec.decode(data, self.expect, kind="theta")
         except Rejected as e:
             self._reject(e.reason, f"latest of robot {j}: {e.detail}")
-            return
-        if msg.sender == j and msg.round >= min_round:
+            return None
+        return msg if msg.sender == j else None
+
+    def _pull_latest(self, j: int, min_round: int) -> None:
+        """Fetch neighbour j's newest snapshot into the mailbox if it is not older than min_round."""
+        # block=False: the link to j has just come back and may go again (see ZenohTransport.query)
+        msg = self._fetch_latest(j, block=False)
+        if msg is not None and msg.round >= min_round:
             self._offer_quietly(j, msg)
             self._event("pulled", sender=j, snapshot_round=msg.round)
 
@@ -443,15 +449,7 @@ class Daemon:
         """Late join / restart: fetch the neighbours' newest snapshots and move to their round."""
         newest: dict[int, ThetaSnapshot] = {}
         for j in sorted(self._reachable_neighbours()):
-            data = self.net.query(self.keys.latest(j), timeout=self.cfg.join_timeout_s)
-            if data is None:
-                continue
-            try:
-                msg = codec.decode(data, self.expect, kind="theta")
-            except Rejected as e:
-                self._reject(e.reason, f"latest of robot {j}: {e.detail}")
-                continue
-            if msg.sender == j:
+            if (msg := self._fetch_latest(j)) is not None:
                 newest[j] = msg
         if not newest:
             return
