@@ -162,6 +162,21 @@ class Stop(Exception):
     """Raised inside training to leave the round loop promptly (SIGTERM, test harness)."""
 
 
+def plan_catch_up(round_index: int, newest: Mapping[int, int | None], round_compute_s: float | None,
+                  max_neighbour_wait_s: float) -> tuple[Literal["train", "skip"], int] | None:
+    """What a robot at ``round_index`` does about neighbours two or more rounds ahead (their newest
+    snapshot rounds in ``newest``): nothing (None), train through to their round (their snapshots
+    stand in meanwhile; no steps lost) when that keeps them waiting at most ``max_neighbour_wait_s``,
+    or skip to their round. Without a measured round time (just started) it skips."""
+    ahead = [r for r in newest.values() if r is not None and r > round_index + 1]
+    if not ahead:
+        return None
+    target = max(ahead)
+    if round_compute_s is not None and (target - round_index) * round_compute_s <= max_neighbour_wait_s:
+        return "train", target
+    return "skip", target
+
+
 def model_spec(setup: RobotSetup) -> ModelSpec:
     """Layout + architecture of theta: robots whose fields differ must not mix parameters."""
     trainer = setup.trainer
@@ -241,7 +256,7 @@ class Daemon:
         self.status_expect = codec.Expectation(swarm=swarm.name, allowed_senders=frozenset(swarm.topology.ids))
         self.membership = Membership(swarm.topology, robot_id)
         self.alive = AliveView(robot_id, cfg.alive_expiry_s)
-        self.mailbox: Mailbox[ThetaSnapshot] = Mailbox(max_ahead=cfg.max_ahead)
+        self.mailbox: Mailbox[ThetaSnapshot] = Mailbox(max_ahead=cfg.max_ahead, last_round=self.training.rounds)
         self.rejected: Counter[str] = Counter()
         self.round = 0
         self.elected = False  # pose frozen because this robot is the reference
@@ -252,6 +267,7 @@ class Daemon:
         self._telemetry = open(self.run_dir / "telemetry.jsonl", "a")
         self._heartbeat: threading.Thread | None = None
         self._last_heard: dict[int, ThetaSnapshot] = {}
+        self._round_compute_s: float | None = None  # our last round's training time: may we train through a gap?
         self._neighbour_status: dict[int, Status] = {}
         self._senders: dict[int, NeighbourSender] = {}
         self._latest_snapshot: tuple[int, bytes] | None = None  # (round, encoded) last published
@@ -480,16 +496,21 @@ class Daemon:
             pass
 
     def _catch_up(self, heard: dict[int, ThetaSnapshot]) -> dict[int, ThetaSnapshot]:
-        """If neighbours moved on without us (we were slow or cut off), jump to their newest round.
+        """If neighbours moved on without us (we were slow or cut off), catch up with them.
 
         A neighbour one round ahead is normal: it is waiting at its barrier for our next snapshot.
-        Two or more ahead means it passed a barrier without us and no longer waits for that round.
+        Two or more ahead means it passed a barrier without us and now waits for our round-``target``
+        snapshot. Training through costs no steps; skipping keeps it from timing out round after
+        round when training through would take too long (``plan_catch_up``).
         """
-        ahead = {j: r for j in self._reachable_neighbours()
-                 if (r := self.mailbox.newest_round(j)) is not None and r > self.round + 1}
-        if not ahead:
+        newest = {j: self.mailbox.newest_round(j) for j in self._reachable_neighbours()}
+        plan = plan_catch_up(self.round, newest, self._round_compute_s, self.cfg.round_timeout_s / 2)
+        if plan is None:
             return heard
-        target = max(ahead.values())
+        action, target = plan
+        if action == "train":
+            self._event("training_through", from_round=self.round, to_round=target)
+            return heard
         items = {j: m for j, m in self.mailbox.items(target).items() if j in self.membership.neighbours}
         self._event("caught_up", from_round=self.round, to_round=target)
         self.log(f"[robot {self.robot_id}] neighbours are at round {target}; skipping from {self.round}")
@@ -701,6 +722,7 @@ class Daemon:
         stats = self.trainer.train(self.training.steps_per_round, on_step=self._check_stop)
         self.round = k + 1
         t_compute = time.monotonic() - t0
+        self._round_compute_s = t_compute
         self._publish_theta(self.round)
         self._set_status(phase="waiting")
         heard, waited = self._barrier(self.round)

@@ -66,7 +66,7 @@ REJECT_REASONS: dict[str, str] = {
     "bad_field": "a body field has the wrong type or is out of range",
     "non_finite": "NaN or infinity among the values",
     "stale_round": "round is older than the current one",
-    "too_far_ahead": "round is too far ahead of the current one to buffer",
+    "too_far_ahead": "round is past the swarm's last round",
 }
 
 

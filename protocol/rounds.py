@@ -14,9 +14,12 @@ later); the daemon's round loop calls :meth:`Mailbox.wait` for the current round
 Rules:
 
 - a round older than the current round is ``stale_round`` and refused;
-- a round more than ``max_ahead`` past the current round is ``too_far_ahead`` and refused
-  (bounded memory: at most ``max_ahead + 1`` rounds per sender are held);
-- rounds in between are buffered, so a fast neighbour's next snapshot is not lost;
+- rounds up to ``max_ahead`` past the current one are buffered, so a fast neighbour's next
+  snapshot is not lost (bounded memory: at most ``max_ahead + 1`` rounds per sender);
+- a round further ahead is not buffered for its round but kept as that sender's newest (one
+  item per sender): a robot that fell far behind (frozen, cut off) learns where its neighbours
+  are, can jump there, and finds the item in place on :meth:`advance` to that round;
+- a round past ``last_round`` (the swarm's last round, when given) is ``too_far_ahead`` and refused;
 - the same (sender, round) offered again **replaces** the earlier item: the newest copy is what
   the sender now stands by (e.g. it re-ran the round after a restart). Items already returned
   by :meth:`wait` are not affected.
@@ -54,12 +57,13 @@ class WaitResult(Generic[T]):
 class Mailbox(Generic[T]):
     """Items keyed by (sender, round), with a barrier on one round."""
 
-    def __init__(self, max_ahead: int, current_round: int = 0, poll_s: float = 0.5):
+    def __init__(self, max_ahead: int, current_round: int = 0, poll_s: float = 0.5, last_round: int | None = None):
         if type(max_ahead) is not int or max_ahead < 0:
             raise ValueError("max_ahead must be a non-negative int")
         if type(current_round) is not int or current_round < 0:
             raise ValueError("current_round must be a non-negative int")
         self.max_ahead = max_ahead
+        self.last_round = last_round
         self._current = current_round
         self._poll_s = poll_s  # safety net if someone forgets notify() on membership changes
         self._items: dict[int, dict[int, T]] = {}  # round -> sender -> item
@@ -77,10 +81,10 @@ class Mailbox(Generic[T]):
         with self._cond:
             if round < self._current:
                 raise Rejected("stale_round", f"round {round} from {sender}, current round {self._current}")
-            if round > self._current + self.max_ahead:
-                raise Rejected("too_far_ahead",
-                               f"round {round} from {sender}, current {self._current} + max_ahead {self.max_ahead}")
-            self._items.setdefault(round, {})[sender] = item
+            if self.last_round is not None and round > self.last_round:
+                raise Rejected("too_far_ahead", f"round {round} from {sender}, the last round is {self.last_round}")
+            if round <= self._current + self.max_ahead:
+                self._items.setdefault(round, {})[sender] = item
             newest = self._newest.get(sender)
             if newest is None or round >= newest[0]:
                 self._newest[sender] = (round, item)
@@ -121,6 +125,9 @@ class Mailbox(Generic[T]):
             self._current = round
             for r in [r for r in self._items if r < round]:
                 del self._items[r]
+            for sender, (r, item) in self._newest.items():  # kept while it was too far ahead
+                if round <= r <= round + self.max_ahead:
+                    self._items.setdefault(r, {}).setdefault(sender, item)
             self._cond.notify_all()
 
     def items(self, round: int) -> dict[int, T]:

@@ -8,6 +8,7 @@ means every running robot has completed k rounds. Faults fire then:
 
 - ``kill``: SIGKILL (no goodbye, like a crash or a power cut); the robot's run dir stays;
 - ``restart``: the same ``up`` command again on the same run dir (the daemon resumes);
+- ``freeze``: SIGSTOP, then SIGCONT after the given seconds (a hung robot that comes back);
 - ``cut`` / ``netem``: :class:`cli.scenario.netns.NetnsLab` on the link, undone at ``to_round``.
 
 The run ends when every robot that should be alive at the end has exited 0 (``done.json``), or
@@ -193,6 +194,7 @@ class ScenarioRunner:
             i: RobotProcess(i, self.out / "robots" / str(i), self.out / "logs" / f"robot{i}.log") for i in spec.ids
         }
         self.lab = None
+        self._thaws: list[tuple[float, int]] = []  # (monotonic time, robot) of frozen robots to SIGCONT
         self.events: list[dict] = []
         self.t0 = time.monotonic()
         self.endpoints: dict[int, tuple[list[str], list[str]]] = {}
@@ -268,8 +270,25 @@ class ScenarioRunner:
             r.exit_codes.append(r.proc.returncode)
         r.state = "killed"
 
+    def _freeze(self, i: int, seconds: float) -> None:
+        r = self.robots[i]
+        if r.proc is not None and r.proc.poll() is None:
+            r.proc.send_signal(signal.SIGSTOP)
+            self._thaws.append((time.monotonic() + seconds, i))
+
+    def _thaw_due(self, everyone: bool = False) -> None:
+        for t, i in [x for x in self._thaws if everyone or x[0] <= time.monotonic()]:
+            self._thaws.remove((t, i))
+            r = self.robots[i]
+            if r.proc is not None and r.proc.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    r.proc.send_signal(signal.SIGCONT)
+                self._event("fault", fault="thaw", robot=i, description=f"SIGCONT robot {i}",
+                            robot_rounds={j: x.completed for j, x in self.robots.items()})
+
     def _stop_all(self) -> None:
         """SIGTERM every running daemon, wait a little, SIGKILL what remains."""
+        self._thaw_due(everyone=True)  # a stopped process would not act on SIGTERM
         running = [r for r in self.robots.values() if r.proc is not None and r.proc.poll() is None]
         for r in running:
             with contextlib.suppress(ProcessLookupError):
@@ -300,6 +319,10 @@ class ScenarioRunner:
             items.append((x.round, 2, f"kill robot {x.robot}", lambda x=x: self._kill(x.robot), {"fault": "kill", "robot": x.robot}))
         for x in f.restart:
             items.append((x.round, 3, f"restart robot {x.robot}", lambda x=x: self._start(x.robot), {"fault": "restart", "robot": x.robot}))
+        for x in f.freeze:
+            items.append((x.round, 2, f"freeze robot {x.robot} for {x.seconds:g} s",
+                          lambda x=x: self._freeze(x.robot, x.seconds),
+                          {"fault": "freeze", "robot": x.robot, "seconds": x.seconds}))
         for x in f.cut:
             a, b = x.link
             items.append((x.from_round, 1, f"cut link {a}-{b}", lambda a=a, b=b: self.lab.set_link(a, b, False), {"fault": "cut", "link": [a, b]}))
@@ -363,6 +386,7 @@ class ScenarioRunner:
         deadline = self.t0 + self.spec.run.timeout_s
         seen_round = 0
         while True:
+            self._thaw_due()
             for r in self.robots.values():
                 for rec in r.poll_telemetry():
                     self._progress(r.id, rec)

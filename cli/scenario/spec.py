@@ -24,6 +24,7 @@ error that names it. Example (every table but ``[scenario]`` is optional)::
     [faults]                                   # rounds count from 0
     kill = [{ robot = 3, round = 2 }]          # SIGKILL robot 3 when the swarm reaches round 2
     restart = [{ robot = 3, round = 4 }]       # start it again on the same run dir (it resumes)
+    freeze = [{ robot = 2, round = 3, seconds = 5 }]  # SIGSTOP robot 2 for 5 s, then SIGCONT
     cut = [{ link = [1, 2], from_round = 2, to_round = 4 }]                  # netns only
     netem = [{ link = [2, 3], from_round = 1, delay_ms = 100, loss = 0.1 }]  # netns only
 
@@ -133,6 +134,20 @@ class RestartFault:
 
 
 @dataclass
+class FreezeFault:
+    """SIGSTOP ``robot`` at ``round`` and SIGCONT it ``seconds`` later: a robot that hangs (no
+    goodbye; its lease expires) and then comes back, rounds behind, with its old state."""
+
+    robot: int
+    round: int
+    seconds: float
+
+    def __post_init__(self) -> None:
+        if not self.seconds > 0:
+            raise ValueError(f"faults.freeze of robot {self.robot}: seconds must be > 0, got {self.seconds}")
+
+
+@dataclass
 class CutFault:
     """Link a-b down (``ip link set down`` on both ends) from ``from_round`` until ``to_round``."""
 
@@ -170,6 +185,7 @@ class NetemFault:
 class FaultsSpec:
     kill: list[KillFault] = field(default_factory=list)
     restart: list[RestartFault] = field(default_factory=list)
+    freeze: list[FreezeFault] = field(default_factory=list)
     cut: list[CutFault] = field(default_factory=list)
     netem: list[NetemFault] = field(default_factory=list)
 
@@ -179,7 +195,7 @@ class FaultsSpec:
 
     @property
     def empty(self) -> bool:
-        return not (self.kill or self.restart or self.cut or self.netem)
+        return not (self.kill or self.restart or self.freeze or self.cut or self.netem)
 
 
 @dataclass
@@ -311,8 +327,8 @@ class ScenarioSpec:
             if to is not None and not frm < to <= rounds:
                 raise ValueError(f"{what}: to_round {to} must be after from_round {frm} and <= rounds ({rounds})")
 
-        for f in self.faults.kill + self.faults.restart:
-            kind = "kill" if isinstance(f, KillFault) else "restart"
+        for f in self.faults.kill + self.faults.restart + self.faults.freeze:
+            kind = {KillFault: "kill", RestartFault: "restart"}.get(type(f), "freeze")
             if f.robot not in ids:
                 raise ValueError(f"faults.{kind}: robot {f.robot} is not one of the robots {sorted(ids)}")
             if not 0 <= f.round < rounds:

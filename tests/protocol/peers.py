@@ -212,9 +212,9 @@ def role_rogue(args) -> None:
 
 
 def role_rogue_receiver(args) -> None:
-    """Robot 0 at round ROUND: decode everything on theta/*/*, count outcomes by reason."""
+    """Robot 0 at round ROUND of ROUND + 10: decode everything on theta/*/*, count outcomes by reason."""
     expect = helpers.expectation()
-    mailbox: Mailbox = Mailbox(max_ahead=2, current_round=helpers.ROUND)
+    mailbox: Mailbox = Mailbox(max_ahead=2, current_round=helpers.ROUND, last_round=helpers.ROUND + 10)
     counts: dict[str, int] = {}
     total = len(rogue_messages())
     lock = threading.Lock()

@@ -56,11 +56,11 @@ def test_no_expected_neighbours_returns_at_once():
 
 
 def test_future_rounds_are_buffered_and_stale_ones_refused():
-    box = Mailbox(max_ahead=2)
+    box = Mailbox(max_ahead=2, last_round=10)
     box.offer(1, 1, "r1")
     box.offer(1, 2, "r2")
     with pytest.raises(Rejected) as exc:
-        box.offer(1, 3, "r3")
+        box.offer(1, 11, "past the end")
     assert exc.value.reason == "too_far_ahead"
     assert box.wait(0, lambda: {1}, timeout_s=0.05).items == {}
     box.advance(1)
@@ -72,6 +72,19 @@ def test_future_rounds_are_buffered_and_stale_ones_refused():
     assert exc.value.reason == "stale_round"
     box.offer(1, 4, "r4")  # now within max_ahead
     assert box.items(1) == {}  # dropped by advance
+
+
+def test_a_round_beyond_the_window_is_kept_as_the_newest_only():
+    """A robot that froze for a while must learn how far ahead its neighbours are, and jump there."""
+    box = Mailbox(max_ahead=2)
+    box.offer(1, 9, "r9")  # 9 > 0 + 2: not buffered for round 9 ...
+    box.offer(2, 7, "b7")
+    box.offer(2, 8, "b8")  # only the newest per sender is kept
+    assert box.items(9) == {} and box.items(7) == {}
+    assert box.newest_round(1) == 9 and box.newest_items() == {1: (9, "r9"), 2: (8, "b8")}
+    box.advance(7)  # ... and in place once 9 is within the window
+    assert box.items(9) == {1: "r9"} and box.items(8) == {2: "b8"} and box.items(7) == {}
+    assert box.wait(9, lambda: {1}, timeout_s=0.05).complete
 
 
 def test_same_round_again_replaces():

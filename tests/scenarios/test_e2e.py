@@ -71,10 +71,11 @@ ROUNDS = 8
 CUT_ROUNDS = 12
 
 
-def run_scenario(tmp: Path, name: str, faults: str = "", steps: int = 8, rounds: int = ROUNDS):
+def run_scenario(tmp: Path, name: str, faults: str = "", steps: int = 8, rounds: int = ROUNDS, daemon: str = ""):
     folder = tmp / name
     folder.mkdir()
     text = TINY.replace("ROUNDS", str(rounds)).replace("steps_per_round = 8", f"steps_per_round = {steps}")
+    text = text.replace("[daemon]\n", f"[daemon]\n{daemon}")
     (folder / "scenario.toml").write_text(text + faults)
     spec = load_scenario(folder)
     out = folder / "out"
@@ -185,6 +186,32 @@ def test_after_the_heal_the_swarm_is_in_step_again(cut_run):
         recs = telemetry(out, i)
         assert [r["round"] for r in recs] == list(range(1, CUT_ROUNDS + 1)), "rounds skipped"
         assert all(r["seconds_wait"] < 10 for r in recs), [r["seconds_wait"] for r in recs]
+
+
+def test_a_frozen_robot_comes_back_in_step(tmp_path, fault_free_long):
+    """SIGSTOP robot 3 at round 2 for 2 s (its lease expires; 2 and 4 go on without it), then SIGCONT.
+
+    It wakes up rounds behind, with neighbours too far ahead to buffer their snapshots (a window
+    of one round here, so that a short freeze is enough): it must learn where they are and catch
+    up, not wait at every barrier for rounds they left long ago (which cost 20 s per round, for the
+    rest of the run, before the mailbox kept a sender's newest snapshot beyond the window).
+    """
+    outcome, out, report = run_scenario(tmp_path, "freeze", "[faults]\nfreeze = [{ robot = 3, round = 2, seconds = 2 }]\n",
+                                        steps=CUT_STEPS, rounds=CUT_ROUNDS, daemon="max_ahead = 1\n")
+    assert outcome.ok, outcome.reason
+    run = json.loads((out / "run.json").read_text())
+    thaw = next(e for e in run["events"] if e.get("fault") == "thaw")
+    for i in (1, 2, 3, 4):
+        recs = telemetry(out, i)
+        assert recs[-1]["round"] == CUT_ROUNDS and (out / f"robots/{i}/done.json").is_file()
+        assert all(r["seconds_wait"] < 10 for r in recs), [(r["round"], r["seconds_wait"]) for r in recs]
+    after = [r for r in telemetry(out, 3) if r["round"] > thaw["robot_rounds"]["3"] + 1]
+    assert after and any(r["heard"] == [2, 4] for r in after), [(r["round"], r["heard"]) for r in telemetry(out, 3)]
+    caught = [e for e in (json.loads(l) for l in (out / "robots/3/events.jsonl").read_text().splitlines())
+              if e["event"] in ("caught_up", "training_through")]
+    assert caught, "robot 3 never noticed that its neighbours were ahead"
+    for i in (1, 2, 4):
+        assert abs(final_psnr(report, i) - final_psnr(fault_free_long[1], i)) < 1.0
 
 
 def test_killed_robot_restarts_and_resumes(tmp_path, fault_free):
