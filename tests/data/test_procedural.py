@@ -20,7 +20,8 @@ from agent.geometry import look_at
 
 @pytest.fixture(scope="module")
 def views():
-    return procedural_views(ProceduralConfig(num_views=12, width=48, height=40, seed=1))
+    """Point-sampled (one ray through each pixel centre): every pixel checkable exactly."""
+    return procedural_views(ProceduralConfig(num_views=12, width=48, height=40, seed=1, supersample=1))
 
 
 def _unproject(c2w, k, depth):
@@ -69,15 +70,37 @@ def test_depth_is_z_depth_not_ray_length(views):
 
 
 def test_determinism_and_seed(views):
-    again = procedural_views(ProceduralConfig(num_views=12, width=48, height=40, seed=1))
+    again = procedural_views(ProceduralConfig(num_views=12, width=48, height=40, seed=1, supersample=1))
     assert torch.equal(again.images, views.images) and torch.equal(again.c2w, views.c2w)
-    other = procedural_views(ProceduralConfig(num_views=12, width=48, height=40, seed=2))
+    other = procedural_views(ProceduralConfig(num_views=12, width=48, height=40, seed=2, supersample=1))
     assert not torch.equal(other.c2w, views.c2w)
 
 
 def test_render_matches_dataset_for_the_same_cameras(views):
     rgba, depth = render_procedural(views.c2w[:2], views.intrinsics[:2], views.width, views.height)
     assert torch.equal(rgba, views.images[:2]) and torch.equal(depth, views.depth[:2])
+
+
+def test_supersampling_averages_rays_spread_over_each_pixel(views):
+    """s = 2 is the mean of four centre-ray renders with the principal point shifted by -+1/4 px
+    (a ray through u + 0.25 is the centre ray of a camera whose cx is 0.25 px larger)."""
+    c2w, k = views.c2w[:2], views.intrinsics[:2]
+    rgba, depth = render_procedural(c2w, k, views.width, views.height, supersample=2)
+    premultiplied, alpha = torch.zeros_like(rgba[..., :3]), torch.zeros_like(rgba[..., 3])
+    for du in (-0.25, 0.25):
+        for dv in (-0.25, 0.25):
+            shifted = k.clone()
+            shifted[:, 2] -= du
+            shifted[:, 3] -= dv
+            one, _ = render_procedural(c2w, shifted, views.width, views.height)
+            premultiplied += one[..., :3] * one[..., 3:] / 4
+            alpha += one[..., 3] / 4
+    assert torch.allclose(rgba[..., 3], alpha) and torch.allclose(rgba[..., :3] * rgba[..., 3:], premultiplied, atol=1e-6)
+    edge = (alpha > 0) & (alpha < 1)
+    assert int(edge.sum()) > 50, "silhouettes are partly covered pixels"
+    assert torch.equal(depth, views.depth[:2]), "depth is still that of the centre ray"
+    with pytest.raises(DataError, match="supersample"):
+        render_procedural(c2w, k, 8, 8, supersample=0)
 
 
 def test_cameras_follow_the_config():

@@ -4,6 +4,11 @@ Each test runs a tiny swarm (24x24 procedural scene, 2^12 hash table, a few step
 one fault on the real network, and asserts what the survivors achieved: every round done, the
 fault seen where it should be (who was heard), checkpoints intact, and image quality next to the
 same swarm without the fault. Needs root (skipped otherwise, with the reason).
+
+The 24x24 images are point-sampled (``supersample=1``): the PSNR tolerances below were set on
+them. With anti-aliased images the models reach ~20 dB instead of ~16 and the cut costs robot 2
+1.7-2.0 dB (not 0.2-0.5): the healed link is used again only ~5 s after the heal, i.e. most of
+the remaining rounds of this short run.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ pytestmark = [needs_netns, pytest.mark.netns, pytest.mark.slow]
 TINY = """
 [scenario]
 name = "e2e"
-dataset = "procedural:views=36,width=24"
+dataset = "procedural:views=36,width=24,supersample=1"
 robots = 4
 [split]
 overlap = 0.2
@@ -185,7 +190,11 @@ def test_after_the_heal_the_swarm_is_in_step_again(cut_run):
     for i in (1, 2, 3, 4):
         recs = telemetry(out, i)
         assert [r["round"] for r in recs] == list(range(1, CUT_ROUNDS + 1)), "rounds skipped"
-        assert all(r["seconds_wait"] < 10 for r in recs), [r["seconds_wait"] for r in recs]
+        # No barrier ran into its 20 s deadline. Shorter stalls do happen around a cut and a heal:
+        # a snapshot put (BLOCK) caught on the cut link holds its sender's Zenoh session for
+        # wait_before_close (5 s), and pushes lost while the link comes back cost a round up to 14 s
+        # (seen once in ~10 runs) until a pull gets through.
+        assert all(r["seconds_wait"] < 19 for r in recs), [r["seconds_wait"] for r in recs]
 
 
 def test_a_frozen_robot_comes_back_in_step(tmp_path, fault_free_long):
