@@ -511,11 +511,11 @@ class Daemon:
         if action == "train":
             self._event("training_through", from_round=self.round, to_round=target)
             return heard
-        items = {j: m for j, m in self.mailbox.items(target).items() if j in self.membership.neighbours}
         self._event("caught_up", from_round=self.round, to_round=target)
         self.log(f"[robot {self.robot_id}] neighbours are at round {target}; skipping from {self.round}")
         self.round = target
-        self.mailbox.advance(target)
+        self.mailbox.advance(target)  # first: a snapshot kept beyond the window is in place only now
+        items = {j: m for j, m in self.mailbox.items(target).items() if j in self.membership.neighbours}
         # Neighbours already at `target` are waiting for our round-`target` snapshot: send our
         # current theta as such at once, or they time out and the swarm stays out of phase.
         self._publish_theta(target)
