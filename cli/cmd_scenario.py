@@ -50,7 +50,7 @@ def list_cmd() -> None:
             table.add_row(folder.name, "", "", f"[red]invalid: {e}[/red]", "", "", "")
             continue
         f = s.faults
-        faults = ", ".join(f"{len(getattr(f, k))} {k}" for k in ("kill", "restart", "freeze", "cut", "netem") if getattr(f, k)) or "-"
+        faults = ", ".join(f"{n} {kind}" for kind, n in f.counts().items()) or "-"
         data = s.dataset.split(":")[0] if s.dataset.startswith("procedural") else Path(s.dataset).name
         table.add_row(s.name, str(s.robots), s.topology.kind, data, f"{s.training.rounds} x {s.training.steps_per_round}",
                       faults, s.run.mode)

@@ -284,7 +284,7 @@ class ScenarioRunner:
                 with contextlib.suppress(ProcessLookupError):
                     r.proc.send_signal(signal.SIGCONT)
                 self._event("fault", fault="thaw", robot=i, description=f"SIGCONT robot {i}",
-                            robot_rounds={j: x.completed for j, x in self.robots.items()})
+                            robot_rounds=self._robot_rounds())
 
     def _stop_all(self) -> None:
         """SIGTERM every running daemon, wait a little, SIGKILL what remains."""
@@ -336,6 +336,10 @@ class ScenarioRunner:
             if x.to_round is not None and x.to_round < self.spec.rounds:
                 items.append((x.to_round, 0, f"clean link {a}-{b}", lambda a=a, b=b: self.lab.impair(a, b), {"fault": "netem-end", "link": [a, b]}))
         return sorted(items, key=lambda t: (t[0], t[1]))
+
+    def _robot_rounds(self) -> dict[int, int]:
+        """Rounds each robot has completed: recorded with every fault, so tests can place it."""
+        return {i: r.completed for i, r in self.robots.items()}
 
     def swarm_round(self) -> int:
         """The round the swarm is in (from 0): the rounds every running robot has completed.
@@ -398,7 +402,7 @@ class ScenarioRunner:
                 self.echo(f"[scenario] round {rnd}: {desc}")
                 action()
                 self._event("fault", round=at, swarm_round=rnd, description=desc,
-                            robot_rounds={i: r.completed for i, r in self.robots.items()}, **info)
+                            robot_rounds=self._robot_rounds(), **info)
             for r in self.robots.values():
                 if r.state != "running" or r.proc is None or r.proc.poll() is None:
                     continue

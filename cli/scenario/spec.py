@@ -193,9 +193,13 @@ class FaultsSpec:
     def needs_netns(self) -> bool:
         return bool(self.cut or self.netem)
 
+    def counts(self) -> dict[str, int]:
+        """Faults per kind, in timeline order of the fields (only the kinds present)."""
+        return {f.name: len(getattr(self, f.name)) for f in dataclasses.fields(self) if getattr(self, f.name)}
+
     @property
     def empty(self) -> bool:
-        return not (self.kill or self.restart or self.freeze or self.cut or self.netem)
+        return not self.counts()
 
 
 @dataclass
@@ -327,12 +331,12 @@ class ScenarioSpec:
             if to is not None and not frm < to <= rounds:
                 raise ValueError(f"{what}: to_round {to} must be after from_round {frm} and <= rounds ({rounds})")
 
-        for f in self.faults.kill + self.faults.restart + self.faults.freeze:
-            kind = {KillFault: "kill", RestartFault: "restart"}.get(type(f), "freeze")
-            if f.robot not in ids:
-                raise ValueError(f"faults.{kind}: robot {f.robot} is not one of the robots {sorted(ids)}")
-            if not 0 <= f.round < rounds:
-                raise ValueError(f"faults.{kind}: round {f.round} of robot {f.robot} is outside 0..{rounds - 1}")
+        for kind in ("kill", "restart", "freeze"):  # the faults of one robot at one round
+            for f in getattr(self.faults, kind):
+                if f.robot not in ids:
+                    raise ValueError(f"faults.{kind}: robot {f.robot} is not one of the robots {sorted(ids)}")
+                if not 0 <= f.round < rounds:
+                    raise ValueError(f"faults.{kind}: round {f.round} of robot {f.robot} is outside 0..{rounds - 1}")
         for r in ids:  # kills and restarts of one robot must alternate, starting with a kill
             events = sorted([(f.round, 1, "kill") for f in self.faults.kill if f.robot == r]
                             + [(f.round, 0, "restart") for f in self.faults.restart if f.robot == r])
