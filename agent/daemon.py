@@ -61,8 +61,7 @@ class DaemonConfig:
     eval_every: int = 1  # rounds between PSNR evaluations on own held-out views (0 = never)
     keep_rounds: bool = False  # also save rounds/<k>.pt (field + pose) for per-round reports
     join_timeout_s: float = 5.0  # query timeout for neighbours' newest snapshots
-    pull_after_s: float = 2.0  # a just-reconnected neighbour's snapshot missing this long is pulled
-    pull_window_s: float = 15.0  # "just reconnected": its token appeared less than this ago
+    pull_after_s: float = 2.0  # a neighbour's snapshot missing this long is asked for (pulled)
     resend_delay_s: float = 1.0  # re-push our snapshot this long after a neighbour's link appears
     # Initial relative pose: "identity" (the paper) or "coarse": match compact keyframe summaries
     # (descriptors + 3-D points, never images) with neighbours whose pose is already known.
@@ -94,32 +93,28 @@ class Network(Protocol):
     def stats(self) -> dict[str, Any]: ...
 
 
-class NeighbourSender:
-    """Delivers this robot's newest snapshot to one neighbour, from its own thread.
+class _NewestJobThread:
+    """One job at a time on its own thread, keeping only the newest job offered meanwhile.
 
-    A put with congestion control BLOCK can wait on a cut or congested link for seconds; with
-    one sender per neighbour (and keys addressed to that neighbour) it delays that neighbour's
-    copy only, never the round loop nor the other neighbours. Only the newest snapshot is kept:
-    an older one still waiting is replaced, since nobody wants it any more.
+    A job is for a round; an older job still waiting is replaced by a newer one, since nobody
+    wants it any more. Subclasses say what a job does (:meth:`_do`).
     """
 
-    def __init__(self, net: "Network", key_for_round: Callable[[int], str], log: Callable[[str], None]) -> None:
-        self._net = net
-        self._key = key_for_round
+    def __init__(self, name: str, log: Callable[[str], None]) -> None:
         self._log = log
         self._cond = threading.Condition()
-        self._slot: tuple[int, bytes] | None = None
+        self._slot: tuple[int, Any] | None = None
         self._not_before = 0.0
         self._busy = False
         self._closed = False
-        self.last_seconds = 0.0  # duration of the last put (how long the link held it)
-        self._thread = threading.Thread(target=self._run, name="sender", daemon=True)
+        self.last_seconds = 0.0  # duration of the last job (e.g. how long a link held a put)
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
-    def offer(self, round_index: int, data: bytes, delay_s: float = 0.0) -> None:
+    def offer(self, round_index: int, data: Any = None, delay_s: float = 0.0) -> None:
         with self._cond:
             if self._slot is not None and self._slot[0] > round_index:
-                return  # a newer snapshot is already waiting
+                return  # a newer job is already waiting
             self._slot = (round_index, data)
             self._not_before = time.monotonic() + delay_s
             self._cond.notify_all()
@@ -133,6 +128,9 @@ class NeighbourSender:
         with self._cond:
             self._closed = True
             self._cond.notify_all()
+
+    def _do(self, round_index: int, data: Any) -> None:
+        raise NotImplementedError
 
     def _run(self) -> None:
         while True:
@@ -149,13 +147,48 @@ class NeighbourSender:
                 self._busy = True
             t0 = time.monotonic()
             try:
-                self._net.publish(self._key(round_index), data)
+                self._do(round_index, data)
             except Exception as e:  # the transport is closing, or the link is gone: log, go on
-                self._log(f"snapshot of round {round_index} not sent: {type(e).__name__}: {e}")
+                self._log(f"round {round_index}: {type(e).__name__}: {e}")
             self.last_seconds = time.monotonic() - t0
             with self._cond:
                 self._busy = False
                 self._cond.notify_all()
+
+
+class NeighbourSender(_NewestJobThread):
+    """Delivers this robot's newest snapshot to one neighbour.
+
+    A put with congestion control BLOCK can wait on a cut or congested link for seconds; with
+    one sender per neighbour (and keys addressed to that neighbour) it delays that neighbour's
+    copy only, never the round loop nor the other neighbours.
+    """
+
+    def __init__(self, net: "Network", key_for_round: Callable[[int], str], log: Callable[[str], None]) -> None:
+        self._net = net
+        self._key = key_for_round
+        super().__init__("sender", log)
+
+    def _do(self, round_index: int, data: bytes) -> None:
+        self._net.publish(self._key(round_index), data)
+
+
+class NeighbourPuller(_NewestJobThread):
+    """Asks one neighbour for its snapshot of a round or later, through its ``latest`` queryable.
+
+    Pushes can be lost: a put made while a link was being re-established found no subscriber,
+    and a link can come back one-sided (the far end does not see our subscription; measured
+    after a SIGSTOP). So the barrier asks for what is missing. The query runs here, not in the
+    round loop: over a link that is dying it waits out its timeout, and that must hold up
+    nobody. The neighbour answers only once it has that round, so asking early costs no bytes.
+    """
+
+    def __init__(self, pull: Callable[[int], None], log: Callable[[str], None]) -> None:
+        self._pull = pull
+        super().__init__("puller", log)
+
+    def _do(self, round_index: int, data: Any) -> None:
+        self._pull(round_index)
 
 
 class Stop(Exception):
@@ -270,8 +303,8 @@ class Daemon:
         self._round_compute_s: float | None = None  # our last round's training time: may we train through a gap?
         self._neighbour_status: dict[int, Status] = {}
         self._senders: dict[int, NeighbourSender] = {}
+        self._pullers: dict[int, NeighbourPuller] = {}
         self._latest_snapshot: tuple[int, bytes] | None = None  # (round, encoded) last published
-        self._appeared: dict[int, float] = {}  # neighbour -> when its token last (re)appeared
         self._last_status["alignment"] = "identity" if cfg.initial_pose == "identity" else "pending"
         with torch.no_grad():
             self._last_status["pose7"] = pose_summary(self.trainer.pose.matrix())["params7"]
@@ -308,11 +341,9 @@ class Daemon:
     def _on_alive(self, ids: frozenset[int]) -> None:
         before = self.alive.direct
         self.alive.set_direct(ids)
-        now = time.monotonic()
         for j in (ids - before) & self.membership.neighbours:
             # A link (re)appeared: snapshots pushed meanwhile found no subscriber. Push ours again
-            # once the new session's subscriptions are through, and let the barrier pull theirs.
-            self._appeared[j] = now
+            # once the new session's subscriptions are through (the barrier pulls theirs).
             latest = self._latest_snapshot
             if latest is not None and j in self._senders:
                 self._senders[j].offer(*latest, delay_s=self.cfg.resend_delay_s)
@@ -388,7 +419,7 @@ class Daemon:
                             epoch=self.membership.epoch, signature=self.spec.signature(),
                             tensors=_to_numpy(self.trainer.theta()))
         data = codec.encode(msg, wire_dtype=self.cfg.wire_dtype, compression=self.cfg.compression, spec=self.spec)
-        self.net.set_latest(data)
+        self.net.set_latest(data, round=round_index)
         self._latest_snapshot = (round_index, data)
         for sender in self._senders.values():
             sender.offer(round_index, data)
@@ -401,9 +432,8 @@ class Daemon:
     def _barrier(self, round_index: int) -> tuple[dict[int, ThetaSnapshot], float]:
         """Neighbours' round-k snapshots, waiting until every reachable neighbour answered or the deadline.
 
-        Pushes can be lost: a snapshot published while a link was being re-established found no
-        subscriber yet. So a neighbour still missing after ``pull_after_s`` is asked for its
-        newest snapshot through its ``latest`` queryable. A neighbour whose newest snapshot is
+        Pushes can be lost, so a neighbour still missing after ``pull_after_s`` is asked for its
+        round-k snapshot (or a later one) in the background (:class:`NeighbourPuller`). A neighbour whose newest snapshot is
         already for a later round passed round k without us (its round-k push was lost while the
         link was down) and waits for *our* next snapshot: its newer snapshot stands in for round k,
         or both sides would wait out ``round_timeout_s``.
@@ -420,12 +450,9 @@ class Daemon:
             got = self.mailbox.wait(round_index, awaited, slice_s)
             if got.complete or time.monotonic() >= deadline or self._stop.is_set():
                 break
-            # Pull only from neighbours that just (re)connected: a link that is dying still shows
-            # its token until the lease expires, and a query over it would only block.
-            recent = {j for j in got.missing
-                      if time.monotonic() - self._appeared.get(j, -1e9) < self.cfg.pull_window_s}
-            for j in sorted(recent):
-                self._pull_latest(j, min_round=round_index)
+            for j in sorted(got.missing):
+                if j in self._pullers:
+                    self._pullers[j].offer(round_index)
         got = self.mailbox.wait(round_index, awaited, 0.0)
         got.waited_s = time.monotonic() - t0
         if not got.complete:
@@ -441,9 +468,10 @@ class Daemon:
         heard = {j: items[j] for j in sorted(items) if j in self.membership.neighbours}
         return heard, got.waited_s
 
-    def _fetch_latest(self, j: int, block: bool = True) -> ThetaSnapshot | None:
-        """Neighbour j's newest snapshot from its ``latest`` queryable, validated; None if none came."""
-        data = self.net.query(self.keys.latest(j), timeout=self.cfg.join_timeout_s, block=block)
+    def _fetch_latest(self, j: int, block: bool = True, min_round: int = 0) -> ThetaSnapshot | None:
+        """Neighbour j's newest snapshot if of ``min_round`` or later, from its ``latest``
+        queryable, validated; None if none came."""
+        data = self.net.query(self.keys.latest_since(j, min_round), timeout=self.cfg.join_timeout_s, block=block)
         if data is None:
             return None
         try:
@@ -455,8 +483,8 @@ class Daemon:
 
     def _pull_latest(self, j: int, min_round: int) -> None:
         """Fetch neighbour j's newest snapshot into the mailbox if it is not older than min_round."""
-        # block=False: the link to j has just come back and may go again (see ZenohTransport.query)
-        msg = self._fetch_latest(j, block=False)
+        # block=False: the link to j may be dying (see ZenohTransport.query)
+        msg = self._fetch_latest(j, block=False, min_round=min_round)
         if msg is not None and msg.round >= min_round:
             self._offer_quietly(j, msg)
             self._event("pulled", sender=j, snapshot_round=msg.round)
@@ -674,7 +702,10 @@ class Daemon:
             self.net.subscribe(self.keys.status(j), self._on_status)
             self._senders[j] = NeighbourSender(
                 self.net, lambda k, j=j: self.keys.theta(self.robot_id, k, to=j),
-                lambda text: self.log(f"[robot {self.robot_id}] to robot {j}: {text}"))
+                lambda text, j=j: self.log(f"[robot {self.robot_id}] snapshot to robot {j} not sent: {text}"))
+            self._pullers[j] = NeighbourPuller(
+                lambda k, j=j: self._pull_latest(j, min_round=k),
+                lambda text, j=j: self.log(f"[robot {self.robot_id}] asking robot {j} for its snapshot: {text}"))
         self._heartbeat = threading.Thread(target=self._heartbeat_loop, name="heartbeat", daemon=True)
         self._heartbeat.start()
         completed = 0
@@ -706,8 +737,8 @@ class Daemon:
                      f"{self.round} kept)")
         finally:
             self._stop.set()
-            for sender in self._senders.values():
-                sender.close()
+            for worker in [*self._senders.values(), *self._pullers.values()]:
+                worker.close()
             if self._heartbeat is not None:
                 self._heartbeat.join(timeout=2 * cfg.heartbeat_s + 1)
             self._events.close()

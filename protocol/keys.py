@@ -5,6 +5,7 @@ Layout (``<swarm>`` is validated, robot ids and rounds are non-negative decimal 
     dinerf/<swarm>/alive/<id>           liveliness token of a running robot
     dinerf/<swarm>/theta/<id>/<round>/<to>  parameter snapshot of robot <id> after <round>, for <to>
     dinerf/<swarm>/latest/<id>          queryable: the newest snapshot of <id> (late join, restart)
+    dinerf/<swarm>/latest/<id>?min_round=<k>   ... only if that snapshot is of round k or later
     dinerf/<swarm>/status/<id>          telemetry
     dinerf/<swarm>/keyframes/<id>       queryable: compact keyframe summary for coarse alignment
 
@@ -47,12 +48,21 @@ KEY_KINDS: dict[str, int] = {
     KIND_KEYFRAMES: 0,
 }
 
+#: Query parameter of :meth:`Keys.latest_since` (read back with :func:`min_round_of`).
+MIN_ROUND_PARAM = "min_round"
+
 _SWARM_RE = re.compile(r"[A-Za-z0-9_-]{1,64}")
 _CANONICAL_INT_RE = re.compile(r"0|[1-9][0-9]{0,9}")
 
 
 class ForeignKey(ValueError):
     """A key expression that is not one of this swarm's keys."""
+
+
+def min_round_of(value: str | None) -> int | None:
+    """The round of a ``min_round`` query parameter; None when absent or not a canonical number
+    (a malformed parameter is treated as absent: the query is answered as a plain one)."""
+    return None if value is None else _parse_number(value)
 
 
 @dataclass(frozen=True)
@@ -110,6 +120,11 @@ class Keys:
 
     def latest(self, robot_id: int) -> str:
         return self._robot(KIND_LATEST, robot_id)
+
+    def latest_since(self, robot_id: int, min_round: int) -> str:
+        """Selector for ``robot_id``'s newest snapshot, answered only if its round is >= ``min_round``:
+        a neighbour that has not got that far replies nothing, so asking costs no snapshot."""
+        return f"{self.latest(robot_id)}?{MIN_ROUND_PARAM}={_check_number(min_round, 'round')}"
 
     def status(self, robot_id: int) -> str:
         return self._robot(KIND_STATUS, robot_id)

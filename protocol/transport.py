@@ -8,8 +8,9 @@
         net.watch_alive(lambda ids: membership.update(ids))      # full set on every change
         net.subscribe(keys.theta_for(0, 1), on_bytes)             # on_bytes(key: str, data: bytes)
         net.publish(keys.theta(1, 7, to=0), encode(snapshot))     # BLOCK + reliable
-        net.set_latest(encoded)                                   # served on latest/1
+        net.set_latest(encoded, round=7)                          # served on latest/1
         data = net.query(keys.latest(0), timeout=5.0)             # bytes or None
+        data = net.query(keys.latest_since(0, 8), timeout=5.0)    # None until robot 0 serves round 8
 
 Why these choices:
 
@@ -45,7 +46,7 @@ from typing import Any, Callable
 
 import zenoh
 
-from protocol.keys import ForeignKey, Keys
+from protocol.keys import MIN_ROUND_PARAM, ForeignKey, Keys, min_round_of
 
 log = logging.getLogger("dinerf.transport")
 
@@ -201,7 +202,7 @@ class ZenohTransport:
         self._messages_out = 0
         self._callback_errors = 0
         self._foreign_keys = 0
-        self._served: dict[str, bytes | None] = {}
+        self._served: dict[str, tuple[bytes | None, int | None]] = {}  # key -> (data, its round)
         self._queryables: dict[str, Any] = {}
         self._publishers: dict[tuple[str, bool], Any] = {}
         self._publishers_lock = threading.Lock()
@@ -429,30 +430,33 @@ class ZenohTransport:
         return sub
 
     # ------------------------------------------------------------------ queryables
-    def _serve(self, key: str, data: bytes | None) -> None:
+    def _serve(self, key: str, data: bytes | None, round: int | None = None) -> None:
         with self._lock:
-            self._served[key] = data
+            self._served[key] = (data, round)
             if key in self._queryables:
                 return
 
         def on_query(query: zenoh.Query) -> None:
             with query:
                 with self._lock:
-                    payload = self._served.get(key)
-                if payload is not None:
-                    query.reply(key, payload)
-                    with self._lock:
-                        self._bytes_out[self._kind_of(key)] += len(payload)
-                        self._messages_out += 1
+                    payload, served_round = self._served.get(key, (None, None))
+                wanted = min_round_of(query.parameters.get(MIN_ROUND_PARAM))
+                if payload is None or (wanted is not None and served_round is not None and served_round < wanted):
+                    return  # nothing (new enough) to give: the get ends without a reply
+                query.reply(key, payload)
+                with self._lock:
+                    self._bytes_out[self._kind_of(key)] += len(payload)
+                    self._messages_out += 1
 
         handle = self.session.declare_queryable(key, self._guard(f"queryable {key}", on_query))
         with self._lock:
             self._queryables[key] = handle
             self._handles.append(handle)
 
-    def set_latest(self, data: bytes | None) -> None:
-        """Serve ``data`` (our newest encoded snapshot) on ``latest/<robot_id>``; None serves nothing."""
-        self._serve(self.keys.latest(self.robot_id), data)
+    def set_latest(self, data: bytes | None, round: int | None = None) -> None:
+        """Serve ``data`` (our newest encoded snapshot, of ``round``) on ``latest/<robot_id>``;
+        None serves nothing. A query for ``latest_since(id, k)`` gets it only if ``round >= k``."""
+        self._serve(self.keys.latest(self.robot_id), data, round)
 
     def set_keyframes(self, data: bytes | None) -> None:
         """Serve our encoded keyframe summary on ``keyframes/<robot_id>``."""

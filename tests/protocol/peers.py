@@ -270,8 +270,10 @@ def role_self_check(args) -> None:
     errors = net.stats()["callback_errors"]
     sub.undeclare()
     sub.undeclare()  # twice is fine
-    net.set_latest(b"newest")
+    net.set_latest(b"newest", round=5)
     served = net.query(net.keys.latest(0), timeout=2)
+    served_since = [net.query(net.keys.latest_since(0, k), timeout=2) for k in (5, 6)]
+    bad_parameter = net.query(net.keys.latest(0) + "?min_round=x", timeout=2)
     missing = net.query(net.keys.latest(7), timeout=2)
     net.close()
     net.close()
@@ -281,7 +283,8 @@ def role_self_check(args) -> None:
     except TransportError as exc:
         after_close = str(exc)
     emit("checked", delivered=delivered, callback_errors=errors, served=served.decode() if served else None,
-         missing=missing, after_close=after_close, stats=net.stats())
+         served_since=[x.decode() if x else None for x in served_since],
+         bad_parameter=bad_parameter.decode() if bad_parameter else None, missing=missing, after_close=after_close, stats=net.stats())
 
 
 ROLES = {

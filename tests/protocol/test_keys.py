@@ -2,7 +2,7 @@
 
 import pytest
 
-from protocol.keys import ForeignKey, Keys, ParsedKey
+from protocol.keys import ForeignKey, Keys, ParsedKey, min_round_of
 
 
 def test_build_and_parse_round_trip():
@@ -20,6 +20,16 @@ def test_build_and_parse_round_trip():
     assert k.parse(k.alive(0)) == ParsedKey("alive", 0, None)
     for build, kind in [(k.latest, "latest"), (k.status, "status"), (k.keyframes, "keyframes")]:
         assert k.parse(build(2**31 - 1)) == ParsedKey(kind, 2**31 - 1, None)
+
+
+def test_latest_since_carries_a_round_the_server_reads_back():
+    k = Keys("s")
+    assert k.latest_since(2, 7) == "dinerf/s/latest/2?min_round=7"
+    assert min_round_of("7") == 7 and min_round_of(None) is None
+    for bad in ["", "-1", "07", "x", "1e3", str(2**31)]:  # malformed: treated as absent
+        assert min_round_of(bad) is None
+    with pytest.raises(ValueError):
+        k.latest_since(2, -1)
 
 
 @pytest.mark.parametrize("swarm", ["", "a/b", "a*", "$x", "a?b", "a#", "with space", "x" * 65, None, 3])

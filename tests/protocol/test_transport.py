@@ -72,5 +72,8 @@ def test_callback_errors_are_contained_and_close_is_idempotent(peers):
     assert got["delivered"] is True
     assert got["callback_errors"] == 1  # the raising callback, counted, not propagated
     assert got["served"] == "newest" and got["missing"] is None
+    # latest_since: served only once that round is reached; a malformed parameter counts as absent
+    assert got["served_since"] == ["newest", None]
+    assert got["bad_parameter"] == "newest"
     assert "closed" in got["after_close"]
-    assert got["stats"]["bytes_out"]["theta"] == 10 and got["stats"]["bytes_out"]["latest"] == 6
+    assert got["stats"]["bytes_out"]["theta"] == 10 and got["stats"]["bytes_out"]["latest"] == 3 * 6
