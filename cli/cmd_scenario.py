@@ -111,6 +111,30 @@ def report_cmd(out: Path = typer.Argument(..., help="The output folder of a `sce
     build_report(out, echo=typer.echo)
 
 
+@scenario_app.command("compare")
+@friendly_errors
+def compare_cmd(
+    runs: list[Path] = typer.Argument(..., help="Output folders of fault scenario runs."),
+    fault_free: Path = typer.Option(..., "--fault-free", help="The output folder of the same swarm run without faults."),
+    tolerance_db: float = typer.Option(0.5, "--tolerance-db", help="How far below the fault-free PSNR a robot may end."),
+    json_out: Path = typer.Option(None, "--json", help="Also write the comparisons to this JSON file."),
+) -> None:
+    """Compare fault runs with the fault-free run: PSNR per robot, rounds finished, rounds lost at restarts."""
+    import json
+
+    from cli.scenario.compare import CompareError, compare_runs, format_comparison
+
+    try:
+        comparisons = [compare_runs(run, fault_free, tolerance_db) for run in runs]
+    except CompareError as e:
+        raise UserError(str(e)) from None
+    typer.echo("\n\n".join(format_comparison(c) for c in comparisons))
+    if json_out is not None:
+        json_out.write_text(json.dumps([c.to_json() for c in comparisons], indent=2) + "\n")
+    if not all(c.ok for c in comparisons):
+        raise typer.Exit(1)
+
+
 @scenario_app.command("compose")
 @friendly_errors
 def compose_cmd(

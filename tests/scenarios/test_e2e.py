@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 
+from cli.scenario.compare import rounds_lost_per_restart
 from cli.scenario.netns import list_namespaces
 from cli.scenario.report import build_report
 from cli.scenario.runner import ScenarioRunner
@@ -258,6 +259,7 @@ def test_killed_robot_restarts_and_resumes(tmp_path, fault_free):
     assert len(done) > kill["robot_rounds"]["3"], done  # trained after the restart
     done_before = kill["robot_rounds"]["3"]
     assert done[:done_before] == list(range(1, done_before + 1))  # nothing of before the kill lost
+    assert rounds_lost_per_restart(out / "robots/3") == [0]  # the checkpoint had every completed round
     assert any(3 in r["heard"] for r in telemetry(out, 4) if r["round"] >= done[done_before])  # back in the swarm
     for i in (1, 2, 4):  # same steps per round as the fault-free run only for the survivors' schedule: loose
         assert math.isfinite(final_psnr(report, i))

@@ -1,0 +1,152 @@
+"""A fault scenario against its fault-free twin: did the survivors lose quality, did anyone lose rounds?
+
+Reads two finished run folders (``report.json`` written by :func:`cli.scenario.report.build_report`,
+and each robot's ``events.jsonl`` / ``telemetry.jsonl``) and says, per robot:
+
+- its final PSNR on the whole scene and on the views only the others saw, beside the fault-free
+  run's, and whether it stays within ``tolerance_db`` (the issue's target: 0.5 dB);
+- whether it finished every round (its last round's checkpoint was written);
+- for each restart, how many completed rounds its checkpoint lost (a SIGKILL may cost the round
+  in progress only, never a completed one).
+
+The runs are not bit-reproducible (robots race over the network), so a small difference is
+noise: run the fault-free scenario twice to see how large.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+
+class CompareError(ValueError):
+    """A folder that is not a finished, reported scenario run."""
+
+
+@dataclass
+class RobotVerdict:
+    robot: int
+    psnr: float | None
+    psnr_fault_free: float | None
+    psnr_others_only: float | None
+    psnr_others_only_fault_free: float | None
+    final_round: int | None
+    rounds: int
+    starts: int | None
+    #: completed rounds a restart did not find in the checkpoint, one entry per restart
+    rounds_lost_per_restart: list[int] = field(default_factory=list)
+
+    @property
+    def delta_db(self) -> float | None:
+        if self.psnr is None or self.psnr_fault_free is None:
+            return None
+        return self.psnr - self.psnr_fault_free
+
+    @property
+    def finished(self) -> bool:
+        return self.final_round == self.rounds
+
+    def within(self, tolerance_db: float) -> bool:
+        return self.delta_db is not None and self.delta_db >= -tolerance_db
+
+
+@dataclass
+class Comparison:
+    scenario: str
+    fault_free: str
+    faults: list[dict[str, Any]]
+    robots: list[RobotVerdict]
+    tolerance_db: float
+
+    @property
+    def ok(self) -> bool:
+        return all(r.finished and r.within(self.tolerance_db) and not any(r.rounds_lost_per_restart)
+                   for r in self.robots)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"scenario": self.scenario, "fault_free": self.fault_free, "faults": self.faults,
+                "tolerance_db": self.tolerance_db, "ok": self.ok,
+                "robots": [{**asdict(r), "delta_db": r.delta_db, "finished": r.finished} for r in self.robots]}
+
+
+def _report(run_dir: Path) -> dict[str, Any]:
+    path = Path(run_dir) / "report.json"
+    if not path.is_file():
+        raise CompareError(f"{run_dir}: no report.json (run `dinerf-agent scenario report {run_dir}` first)")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise CompareError(f"{path}: not JSON ({e})") from None
+
+
+def _jsonl(path: Path) -> list[dict[str, Any]]:
+    if not path.is_file():
+        return []
+    out = []
+    for line in path.read_text().splitlines():
+        try:
+            out.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue  # a line cut short by a SIGKILL
+    return out
+
+
+def rounds_lost_per_restart(robot_dir: Path) -> list[int]:
+    """For each resume of this robot: its last completed round before the restart minus the
+    round its checkpoint gave back (0 = nothing lost)."""
+    telemetry = sorted(_jsonl(robot_dir / "telemetry.jsonl"), key=lambda r: r.get("time", 0.0))
+    lost = []
+    for ev in _jsonl(robot_dir / "events.jsonl"):
+        if ev.get("event") != "resumed":
+            continue
+        before = [int(r["round"]) for r in telemetry if r.get("time", 0.0) < ev.get("time", 0.0)]
+        lost.append(max(0, max(before, default=0) - int(ev.get("from_round", 0))))
+    return lost
+
+
+def compare_runs(run_dir: Path, fault_free_dir: Path, tolerance_db: float = 0.5) -> Comparison:
+    run, base = _report(run_dir), _report(fault_free_dir)
+    rounds = _total_rounds(run_dir)
+    verdicts = []
+    for rid, doc in sorted(run["robots"].items(), key=lambda kv: int(kv[0])):
+        final = doc.get("final") or {}
+        base_final = (base["robots"].get(rid) or {}).get("final") or {}
+        verdicts.append(RobotVerdict(
+            robot=int(rid), psnr=final.get("psnr"), psnr_fault_free=base_final.get("psnr"),
+            psnr_others_only=final.get("psnr_others_only"),
+            psnr_others_only_fault_free=base_final.get("psnr_others_only"),
+            final_round=doc.get("final_round"), rounds=rounds, starts=doc.get("starts"),
+            rounds_lost_per_restart=rounds_lost_per_restart(Path(run_dir) / "robots" / rid)))
+    faults = [{k: v for k, v in f.items() if k != "event"} for f in run.get("faults", [])]
+    return Comparison(f"{run.get('scenario')} ({run_dir})", f"{base.get('scenario')} ({fault_free_dir})",
+                      faults, verdicts, tolerance_db)
+
+
+def _total_rounds(run_dir: Path) -> int:
+    from cli.scenario.report import load_run_spec
+
+    return load_run_spec(Path(run_dir)).training.rounds
+
+
+def _f(x: float | None, fmt: str = ".2f") -> str:
+    return "-" if x is None else format(x, fmt)
+
+
+def format_comparison(c: Comparison) -> str:
+    """A markdown table, one row per robot, and a verdict line."""
+    lines = [f"{c.scenario} against {c.fault_free} (tolerance {c.tolerance_db} dB); faults: "
+             + (", ".join(json.dumps(f, sort_keys=True) for f in c.faults) or "none"),
+             "",
+             "| robot | PSNR | fault-free | delta | others-only | fault-free | rounds | starts | rounds lost at restart |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in c.robots:
+        lines.append(f"| {r.robot} | {_f(r.psnr)} | {_f(r.psnr_fault_free)} | {_f(r.delta_db, '+.2f')} | "
+                     f"{_f(r.psnr_others_only)} | {_f(r.psnr_others_only_fault_free)} | "
+                     f"{r.final_round}/{r.rounds} | {r.starts} | "
+                     f"{', '.join(map(str, r.rounds_lost_per_restart)) or '-'} |")
+    lines.append("")
+    lines.append(f"verdict: {'met' if c.ok else 'NOT met'} (target: every robot finishes, loses no completed "
+                 f"round, and stays within {c.tolerance_db} dB of the fault-free run)")
+    return "\n".join(lines)
