@@ -47,7 +47,9 @@ class Consensus:
 
     def __init__(self, params: Sequence[Tensor], cfg: ConsensusConfig) -> None:
         self.cfg = cfg
-        self.duals = [torch.zeros_like(p, memory_format=torch.contiguous_format) for p in params]
+        self._zeros = [torch.zeros_like(p, memory_format=torch.contiguous_format) for p in params]
+        self.edge_duals: dict[int, list[Tensor]] = {}  # y_ij, per neighbour j ever heard
+        self.duals = [z.clone() for z in self._zeros]  # sum of y_ij over the neighbours heard this round
         self.anchor_sum: list[Tensor] | None = None  # sum_j (theta_i^k + theta_j^k) / 2
         self.num_neighbours = 0
         self.rho = cfg.rho(0)
@@ -60,6 +62,10 @@ class Consensus:
         self.round = round_index
         self.rho = self.cfg.rho(round_index)
         self.num_neighbours = len(neighbours)
+        self.duals = [z.clone() for z in self._zeros]
+        for j in neighbours:
+            for y, y_ij in zip(self.duals, self.edge_duals.get(j, ())):
+                y.add_(y_ij)
         if not neighbours:
             self.anchor_sum = None
             return
@@ -98,20 +104,35 @@ class Consensus:
 
     @torch.no_grad()
     def dual_update(self, own: Sequence[Tensor], neighbours: Mapping[int, Sequence[Tensor]]) -> None:
-        """``y_i += rho_k sum_j (theta_i^{k+1} - theta_j^{k+1})`` over the neighbours heard."""
-        for theta_j in neighbours.values():
-            for y, o, t in zip(self.duals, own, theta_j):
+        """``y_ij += rho_k (theta_i^{k+1} - theta_j^{k+1})`` for the neighbours heard (the next
+        round's ``begin_round`` sums them)."""
+        for j, theta_j in neighbours.items():
+            edge = self.edge_duals.setdefault(j, [z.clone() for z in self._zeros])
+            for y, o, t in zip(edge, own, theta_j):
                 y.add_(o.detach() - t, alpha=self.rho)
+
+    @torch.no_grad()
+    def reset_duals(self) -> None:
+        """Forget the accumulated disagreement (theta_i was replaced: the old duals priced a model
+        that is gone)."""
+        self.edge_duals.clear()
+        for y in self.duals:
+            y.zero_()
 
     # --- persistence ---------------------------------------------------------------------
     def state_dict(self) -> dict:
-        return {"duals": [d.clone() for d in self.duals], "rho": self.rho, "round": self.round}
+        return {"edge_duals": {j: [d.clone() for d in y] for j, y in self.edge_duals.items()},
+                "rho": self.rho, "round": self.round}
 
     def load_state_dict(self, state: dict) -> None:
-        duals = state["duals"]
-        if len(duals) != len(self.duals) or any(a.shape != b.shape for a, b in zip(duals, self.duals)):
-            raise ValueError("consensus state does not match the model's parameter shapes")
-        self.duals = [d.clone() for d in duals]
+        if "edge_duals" not in state:
+            raise ValueError("consensus state from an older dinerf (one summed dual, not one per neighbour)")
+        edges = state["edge_duals"]
+        for y in edges.values():
+            if len(y) != len(self._zeros) or any(a.shape != b.shape for a, b in zip(y, self._zeros)):
+                raise ValueError("consensus state does not match the model's parameter shapes")
+        self.edge_duals = {int(j): [d.clone() for d in y] for j, y in edges.items()}
+        self.duals = [z.clone() for z in self._zeros]
         self.rho = float(state["rho"])
         self.round = int(state["round"])
         self.anchor_sum = None

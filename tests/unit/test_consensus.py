@@ -13,8 +13,8 @@ def test_penalty_gradient_matches_autograd():
     own = [torch.randn(7, 3, generator=g)]
     nbrs = {2: [torch.randn(7, 3, generator=g)], 5: [torch.randn(7, 3, generator=g)]}
     c = Consensus([p], ConsensusConfig(rho0=0.7))
-    c.duals[0] = torch.randn(7, 3, generator=g)
     c.begin_round(0, own, nbrs)
+    c.duals[0] = torch.randn(7, 3, generator=g)  # as if the edges' duals summed to this
     c.add_penalty_grad([p])
     explicit = p.grad.clone()
     p.grad = None
@@ -80,11 +80,42 @@ def test_without_consensus_robots_do_not_agree():
 
 def test_state_roundtrip_and_shape_mismatch():
     p = torch.zeros(3)
-    c = Consensus([p], ConsensusConfig())
-    c.duals[0] += 1
+    c = Consensus([p], ConsensusConfig(rho0=1.0))
+    c.dual_update([torch.ones(3)], {2: [torch.zeros(3)], 5: [2 * torch.ones(3)]})
     state = c.state_dict()
     c2 = Consensus([torch.zeros(3)], ConsensusConfig())
     c2.load_state_dict(state)
-    assert torch.equal(c2.duals[0], c.duals[0])
-    with pytest.raises(ValueError):
+    assert set(c2.edge_duals) == {2, 5}
+    assert all(torch.equal(c2.edge_duals[j][0], c.edge_duals[j][0]) for j in (2, 5))
+    with pytest.raises(ValueError, match="shapes"):
         Consensus([torch.zeros(4)], ConsensusConfig()).load_state_dict(state)
+    with pytest.raises(ValueError, match="older"):
+        c2.load_state_dict({"duals": [torch.zeros(3)], "rho": 1.0, "round": 0})
+
+
+def test_a_neighbour_not_heard_exerts_no_dual():
+    """Its edge's dual waits for it: a dead neighbour must not keep pushing theta_i (Adam turns a
+    constant push on entries without data into full-size steps)."""
+    p = torch.zeros(2, requires_grad=True)
+    c = Consensus([p], ConsensusConfig(rho0=1.0))
+    c.dual_update([torch.zeros(2)], {2: [torch.ones(2)], 3: [-3 * torch.ones(2)]})  # y_12 = -1, y_13 = 3
+    assert torch.equal(c.edge_duals[2][0], -torch.ones(2)) and torch.equal(c.edge_duals[3][0], 3 * torch.ones(2))
+    c.begin_round(1, [p.detach()], {2: [torch.ones(2)], 3: [torch.ones(2)]})
+    assert torch.equal(c.duals[0], 2 * torch.ones(2))  # both edges: the summed dual of before
+    c.begin_round(2, [p.detach()], {2: [p.detach()]})  # robot 3 gone: only y_12 acts
+    c.add_penalty_grad([p])
+    assert torch.equal(p.grad, -torch.ones(2))
+    c.begin_round(3, [p.detach()], {})  # alone: no dual at all
+    assert torch.equal(c.duals[0], torch.zeros(2))
+
+
+def test_reset_duals_forgets_the_disagreement_only():
+    p = torch.zeros(4)
+    c = Consensus([p], ConsensusConfig(rho0=0.5))
+    c.dual_update([torch.ones(4)], {2: [torch.zeros(4)]})
+    c.begin_round(1, [p], {2: [p]})
+    assert torch.equal(c.duals[0], torch.full((4,), 0.5))
+    c.reset_duals()
+    assert torch.equal(c.duals[0], torch.zeros(4)) and not c.edge_duals and c.rho == 0.5
+    c.begin_round(2, [p], {2: [p]})
+    assert torch.equal(c.duals[0], torch.zeros(4))
