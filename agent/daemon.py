@@ -62,6 +62,10 @@ class DaemonConfig:
     keep_rounds: bool = False  # also save rounds/<k>.pt (field + pose) for per-round reports
     join_timeout_s: float = 5.0  # query timeout for neighbours' newest snapshots
     pull_after_s: float = 2.0  # a neighbour's snapshot missing this long is asked for (pulled)
+    # A robot that finds its neighbours this many rounds ahead when it comes back (restart, skip
+    # after a freeze or a cut) takes their mean model instead of its own, and forgets its duals:
+    # its own is stale, and C-ADMM would pull the neighbours back towards it. 0 = keep its own.
+    adopt_after_rounds: int = 2
     resend_delay_s: float = 1.0  # re-push our snapshot this long after a neighbour's link appears
     # Initial relative pose: "identity" (the paper) or "coarse": match compact keyframe summaries
     # (descriptors + 3-D points, never images) with neighbours whose pose is already known.
@@ -504,18 +508,26 @@ class Daemon:
                     self._offer_quietly(j, m)
             return
         fresh_start = self.round == 0 and self.trainer.step == 0
-        if fresh_start:  # a new robot starts from the swarm's current model, not from theta^0
-            at_target = [_to_torch(m) for m in newest.values() if m.round == target]
-            mean = {n: sum(t[n] for t in at_target) / len(at_target) for n in at_target[0]}
-            self.trainer.load_theta(mean)
-        self._event("joined", from_round=self.round, to_round=target, fresh=fresh_start)
+        adopt = fresh_start or self._is_stale(target)
+        if adopt:  # a new robot starts from the swarm's current model, not from theta^0
+            self._adopt_mean([m for m in newest.values() if m.round == target], reset_duals=not fresh_start)
+        self._event("joined", from_round=self.round, to_round=target, fresh=fresh_start, adopted=adopt)
         self.log(f"[robot {self.robot_id}] joining the swarm at round {target} (was at {self.round}"
-                 f"{', warm start from neighbours' if fresh_start else ''})")
+                 f"{', taking the neighbours mean model' if adopt else ''})")
         self.round = target
         self.mailbox.advance(target)
         for j, m in newest.items():
             if m.round >= target:
                 self._offer_quietly(j, m)
+
+    def _is_stale(self, target: int) -> bool:
+        return self.cfg.adopt_after_rounds > 0 and target - self.round >= self.cfg.adopt_after_rounds
+
+    def _adopt_mean(self, snapshots: list[ThetaSnapshot], reset_duals: bool) -> None:
+        """Replace theta_i by the mean of the neighbours' snapshots (all of one round)."""
+        thetas = [_to_torch(m) for m in snapshots]
+        self.trainer.load_theta({n: sum(t[n] for t in thetas) / len(thetas) for n in thetas[0]},
+                                reset_duals=reset_duals)
 
     def _offer_quietly(self, sender: int, msg: ThetaSnapshot) -> None:
         try:
@@ -539,11 +551,15 @@ class Daemon:
         if action == "train":
             self._event("training_through", from_round=self.round, to_round=target)
             return heard
-        self._event("caught_up", from_round=self.round, to_round=target)
-        self.log(f"[robot {self.robot_id}] neighbours are at round {target}; skipping from {self.round}")
-        self.round = target
         self.mailbox.advance(target)  # first: a snapshot kept beyond the window is in place only now
         items = {j: m for j, m in self.mailbox.items(target).items() if j in self.membership.neighbours}
+        adopt = self._is_stale(target) and bool(items)
+        if adopt:
+            self._adopt_mean(list(items.values()), reset_duals=True)
+        self._event("caught_up", from_round=self.round, to_round=target, adopted=adopt)
+        self.log(f"[robot {self.robot_id}] neighbours are at round {target}; skipping from {self.round}"
+                 f"{', taking their mean model' if adopt else ''}")
+        self.round = target
         # Neighbours already at `target` are waiting for our round-`target` snapshot: send our
         # current theta as such at once, or they time out and the swarm stays out of phase.
         self._publish_theta(target)

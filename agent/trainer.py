@@ -226,10 +226,13 @@ class RobotTrainer:
         return [theta[n].to(self.device) for n in self.theta_names]
 
     @torch.no_grad()
-    def load_theta(self, theta: Mapping[str, Tensor]) -> None:
-        """Overwrite theta_i (a late joiner warm-starts from its neighbours)."""
+    def load_theta(self, theta: Mapping[str, Tensor], reset_duals: bool = False) -> None:
+        """Overwrite theta_i (a late joiner warm-starts from its neighbours; ``reset_duals`` when a
+        model with a history is replaced, e.g. a robot back after rounds away)."""
         for n, p in self.field.named_parameters():
             p.copy_(theta[n])
+        if reset_duals and self.consensus is not None:
+            self.consensus.reset_duals()
 
     def begin_round(self, round_index: int, neighbours: Mapping[int, Mapping[str, Tensor]]) -> None:
         """Anchors of round k from theta_i^k (the current parameters) and the theta_j^k heard."""
