@@ -61,7 +61,7 @@ class DaemonConfig:
     eval_every: int = 1  # rounds between PSNR evaluations on own held-out views (0 = never)
     keep_rounds: bool = False  # also save rounds/<k>.pt (field + pose) for per-round reports
     join_timeout_s: float = 5.0  # query timeout for neighbours' newest snapshots
-    pull_after_s: float = 2.0  # a neighbour's snapshot missing this long is asked for (pulled)
+    pull_after_s: float = 2.0  # a neighbour's snapshot missing this long is asked for (pulled; PullPacing)
     # A robot that finds its neighbours this many rounds ahead when it comes back (restart, skip
     # after a freeze or a cut) takes their mean model instead of its own, and forgets its duals:
     # its own is stale, and C-ADMM would pull the neighbours back towards it. 0 = keep its own.
@@ -195,6 +195,54 @@ class NeighbourPuller(_NewestJobThread):
         self._pull(round_index)
 
 
+class PullPacing:
+    """How long the barrier waits for a neighbour's push before asking for the snapshot (a pull).
+
+    Asking too early duplicates a push that is merely slow: on a link with 100 ms and 10% loss,
+    pulls after a fixed 2 s made it carry 1.5x the bytes (measured, fault-lossy-link). Asking
+    too late leaves a lost push to the barrier deadline. So each neighbour has its own delay:
+    doubled (up to ``max_s``) when a pull fetched a round its push delivered too, halved (down
+    to ``base_s``) when its push arrives within half the delay or when the push of the round
+    pulled before never came (that pull was needed: a one-sided link). Thread-safe.
+    """
+
+    def __init__(self, base_s: float, max_s: float) -> None:
+        self.base_s = base_s
+        self.max_s = max(max_s, base_s)
+        self._lock = threading.Lock()
+        self._delay: dict[int, float] = {}
+        self._pulled: dict[int, int] = {}  # neighbour -> round of its last pulled snapshot
+        self._pushed: dict[int, int] = {}  # neighbour -> round of its last pushed snapshot
+        self._doubled_for: dict[int, int] = {}  # a round counted once as a wasted pull
+
+    def delay(self, j: int) -> float:
+        with self._lock:
+            return self._delay.get(j, self.base_s)
+
+    def pulled(self, j: int, round_index: int) -> None:
+        with self._lock:
+            before = self._pulled.get(j)
+            if before is not None and before < round_index and self._pushed.get(j, -1) < before:
+                self._delay[j] = max(self.base_s, self._delay.get(j, self.base_s) / 2)
+            self._pulled[j] = round_index
+            self._wasted(j, round_index)
+
+    def pushed(self, j: int, round_index: int, waited_s: float) -> None:
+        """A push of ``round_index`` arrived ``waited_s`` after our barrier for it began (0: before)."""
+        with self._lock:
+            self._pushed[j] = round_index
+            if not self._wasted(j, round_index) and waited_s < self._delay.get(j, self.base_s) / 2:
+                self._delay[j] = max(self.base_s, self._delay.get(j, self.base_s) / 2)
+
+    def _wasted(self, j: int, round_index: int) -> bool:
+        if (self._pulled.get(j) == round_index == self._pushed.get(j)
+                and self._doubled_for.get(j) != round_index):
+            self._doubled_for[j] = round_index
+            self._delay[j] = min(2 * self._delay.get(j, self.base_s), self.max_s)
+            return True
+        return False
+
+
 class Stop(Exception):
     """Raised inside training to leave the round loop promptly (SIGTERM, test harness)."""
 
@@ -308,6 +356,8 @@ class Daemon:
         self._neighbour_status: dict[int, Status] = {}
         self._senders: dict[int, NeighbourSender] = {}
         self._pullers: dict[int, NeighbourPuller] = {}
+        self._pacing = PullPacing(cfg.pull_after_s, cfg.round_timeout_s / 4)
+        self._barrier_began: tuple[int, float] = (-1, 0.0)  # (round, monotonic) of the current barrier
         self._latest_snapshot: tuple[int, bytes] | None = None  # (round, encoded) last published
         self._last_status["alignment"] = "identity" if cfg.initial_pose == "identity" else "pending"
         with torch.no_grad():
@@ -321,6 +371,9 @@ class Daemon:
                 raise Rejected("bad_kind", f"snapshot addressed to robot {parsed.receiver}")
             msg = codec.decode(data, self.expect, kind="theta", key=parsed)
             self.mailbox.offer(msg.sender, msg.round, msg)
+            barrier_round, began = self._barrier_began
+            waited = time.monotonic() - began if msg.round == barrier_round else 0.0
+            self._pacing.pushed(msg.sender, msg.round, waited)
         except Rejected as e:
             self._reject(e.reason, f"{key}: {e.detail}")
         except ValueError as e:  # a foreign key on our subscription
@@ -448,6 +501,7 @@ class Daemon:
                     if (r := self.mailbox.newest_round(j)) is None or r <= round_index}
 
         t0 = time.monotonic()
+        self._barrier_began = (round_index, t0)
         deadline = t0 + self.cfg.round_timeout_s
         while True:
             slice_s = max(min(self.cfg.pull_after_s, deadline - time.monotonic()), 0.0)
@@ -455,7 +509,7 @@ class Daemon:
             if got.complete or time.monotonic() >= deadline or self._stop.is_set():
                 break
             for j in sorted(got.missing):
-                if j in self._pullers:
+                if j in self._pullers and time.monotonic() - t0 >= self._pacing.delay(j):
                     self._pullers[j].offer(round_index)
         got = self.mailbox.wait(round_index, awaited, 0.0)
         got.waited_s = time.monotonic() - t0
@@ -491,7 +545,8 @@ class Daemon:
         msg = self._fetch_latest(j, block=False, min_round=min_round)
         if msg is not None and msg.round >= min_round:
             self._offer_quietly(j, msg)
-            self._event("pulled", sender=j, snapshot_round=msg.round)
+            self._pacing.pulled(j, msg.round)
+            self._event("pulled", sender=j, snapshot_round=msg.round, next_pull_after_s=self._pacing.delay(j))
 
     def _join_current_round(self) -> None:
         """Late join / restart: fetch the neighbours' newest snapshots and move to their round."""
