@@ -223,7 +223,7 @@ class PullPacing:
         with self._lock:
             before = self._pulled.get(j)
             if before is not None and before < round_index and self._pushed.get(j, -1) < before:
-                self._delay[j] = max(self.base_s, self._delay.get(j, self.base_s) / 2)
+                self._halve(j)
             self._pulled[j] = round_index
             self._wasted(j, round_index)
 
@@ -232,7 +232,10 @@ class PullPacing:
         with self._lock:
             self._pushed[j] = round_index
             if not self._wasted(j, round_index) and waited_s < self._delay.get(j, self.base_s) / 2:
-                self._delay[j] = max(self.base_s, self._delay.get(j, self.base_s) / 2)
+                self._halve(j)
+
+    def _halve(self, j: int) -> None:
+        self._delay[j] = max(self.base_s, self._delay.get(j, self.base_s) / 2)
 
     def _wasted(self, j: int, round_index: int) -> bool:
         if (self._pulled.get(j) == round_index == self._pushed.get(j)
@@ -489,11 +492,12 @@ class Daemon:
     def _barrier(self, round_index: int) -> tuple[dict[int, ThetaSnapshot], float]:
         """Neighbours' round-k snapshots, waiting until every reachable neighbour answered or the deadline.
 
-        Pushes can be lost, so a neighbour still missing after ``pull_after_s`` is asked for its
-        round-k snapshot (or a later one) in the background (:class:`NeighbourPuller`). A neighbour whose newest snapshot is
-        already for a later round passed round k without us (its round-k push was lost while the
-        link was down) and waits for *our* next snapshot: its newer snapshot stands in for round k,
-        or both sides would wait out ``round_timeout_s``.
+        Pushes can be lost, so a neighbour still missing after its pull delay (:class:`PullPacing`)
+        is asked for its round-k snapshot, or a later one, in the background
+        (:class:`NeighbourPuller`). A neighbour whose newest snapshot is already for a later round
+        passed round k without us (its round-k push was lost while the link was down) and waits
+        for *our* next snapshot: its newer snapshot stands in for round k, or both sides would
+        wait out ``round_timeout_s``.
         """
 
         def awaited() -> set[int]:

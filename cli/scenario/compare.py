@@ -21,6 +21,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from cli.scenario.report import load_run_spec, read_jsonl
+
 
 class CompareError(ValueError):
     """A folder that is not a finished, reported scenario run."""
@@ -82,24 +84,12 @@ def _report(run_dir: Path) -> dict[str, Any]:
         raise CompareError(f"{path}: not JSON ({e})") from None
 
 
-def _jsonl(path: Path) -> list[dict[str, Any]]:
-    if not path.is_file():
-        return []
-    out = []
-    for line in path.read_text().splitlines():
-        try:
-            out.append(json.loads(line))
-        except json.JSONDecodeError:
-            continue  # a line cut short by a SIGKILL
-    return out
-
-
 def rounds_lost_per_restart(robot_dir: Path) -> list[int]:
     """For each resume of this robot: its last completed round before the restart minus the
     round its checkpoint gave back (0 = nothing lost)."""
-    telemetry = sorted(_jsonl(robot_dir / "telemetry.jsonl"), key=lambda r: r.get("time", 0.0))
+    telemetry = sorted(read_jsonl(robot_dir / "telemetry.jsonl"), key=lambda r: r.get("time", 0.0))
     lost = []
-    for ev in _jsonl(robot_dir / "events.jsonl"):
+    for ev in read_jsonl(robot_dir / "events.jsonl"):
         if ev.get("event") != "resumed":
             continue
         before = [int(r["round"]) for r in telemetry if r.get("time", 0.0) < ev.get("time", 0.0)]
@@ -109,7 +99,7 @@ def rounds_lost_per_restart(robot_dir: Path) -> list[int]:
 
 def compare_runs(run_dir: Path, fault_free_dir: Path, tolerance_db: float = 0.5) -> Comparison:
     run, base = _report(run_dir), _report(fault_free_dir)
-    rounds = _total_rounds(run_dir)
+    rounds = load_run_spec(Path(run_dir)).training.rounds
     verdicts = []
     for rid, doc in sorted(run["robots"].items(), key=lambda kv: int(kv[0])):
         final = doc.get("final") or {}
@@ -123,12 +113,6 @@ def compare_runs(run_dir: Path, fault_free_dir: Path, tolerance_db: float = 0.5)
     faults = [{k: v for k, v in f.items() if k != "event"} for f in run.get("faults", [])]
     return Comparison(f"{run.get('scenario')} ({run_dir})", f"{base.get('scenario')} ({fault_free_dir})",
                       faults, verdicts, tolerance_db)
-
-
-def _total_rounds(run_dir: Path) -> int:
-    from cli.scenario.report import load_run_spec
-
-    return load_run_spec(Path(run_dir)).training.rounds
 
 
 def _f(x: float | None, fmt: str = ".2f") -> str:

@@ -28,7 +28,7 @@ from typing import Any, Callable
 from cli.config import from_dict
 from cli.scenario.spec import ScenarioSpec
 
-__all__ = ["build_report", "load_run_spec"]
+__all__ = ["build_report", "load_run_spec", "read_jsonl"]
 
 
 def _mean(xs) -> float | None:
@@ -56,8 +56,8 @@ def load_run_spec(out: Path) -> ScenarioSpec:
     return spec
 
 
-def _telemetry(run_dir: Path) -> list[dict]:
-    path = run_dir / "telemetry.jsonl"
+def read_jsonl(path: Path) -> list[dict]:
+    """The records of a robot's JSON-lines file (telemetry, events); none if it is absent."""
     if not path.is_file():
         return []
     out = []
@@ -90,7 +90,7 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
     ids = spec.ids
     t0 = time.monotonic()
 
-    telemetry = {i: _telemetry(out / "robots" / str(i)) for i in ids}
+    telemetry = {i: read_jsonl(out / "robots" / str(i) / "telemetry.jsonl") for i in ids}
     snaps = {i: _snapshot_rounds(out / "robots" / str(i)) for i in ids}
     all_rounds = sorted({k for ks in snaps.values() for k in ks})
     last = all_rounds[-1] if all_rounds else None
