@@ -33,10 +33,15 @@ class ConsensusConfig:
     rho0: float = 1e-5
     rho_growth: float = 1.0  # rho_k = rho0 * rho_growth**k  (DiNNO grows it slowly)
     rho_max: float = 1.0
+    forget_edge_after: int = 2  # an edge silent for this many rounds restarts its dual at zero
+    # (a cut link, a dead neighbour): the old y_ij priced a disagreement both models have since
+    # left behind, and applied on return it pushes in a stale direction. 0 = never forget.
 
     def __post_init__(self) -> None:
         if self.rho0 <= 0 or self.rho_growth < 1.0 or self.rho_max < self.rho0:
             raise ValueError("need rho0 > 0, rho_growth >= 1 and rho_max >= rho0")
+        if self.forget_edge_after < 0:
+            raise ValueError("forget_edge_after must be >= 0 (0 = never)")
 
     def rho(self, round_index: int) -> float:
         return min(self.rho0 * self.rho_growth**round_index, self.rho_max)
@@ -49,6 +54,7 @@ class Consensus:
         self.cfg = cfg
         self._zeros = [torch.zeros_like(p, memory_format=torch.contiguous_format) for p in params]
         self.edge_duals: dict[int, list[Tensor]] = {}  # y_ij, per neighbour j ever heard
+        self.edge_round: dict[int, int] = {}  # round of y_ij's last update
         self.duals = [z.clone() for z in self._zeros]  # sum of y_ij over the neighbours heard this round
         self.anchor_sum: list[Tensor] | None = None  # sum_j (theta_i^k + theta_j^k) / 2
         self.num_neighbours = 0
@@ -64,6 +70,7 @@ class Consensus:
         self.num_neighbours = len(neighbours)
         self.duals = [z.clone() for z in self._zeros]
         for j in neighbours:
+            self._forget_if_silent(j, round_index)
             for y, y_ij in zip(self.duals, self.edge_duals.get(j, ())):
                 y.add_(y_ij)
         if not neighbours:
@@ -74,6 +81,15 @@ class Consensus:
             for s, t in zip(sums, theta_j):
                 s.add_(t, alpha=0.5)
         self.anchor_sum = sums
+
+    def _forget_if_silent(self, j: int, round_index: int) -> None:
+        """Drop y_ij if the edge missed ``forget_edge_after`` rounds or more. Both ends missed
+        the same rounds, so both drop it and the pair of duals stays antisymmetric."""
+        last = self.edge_round.get(j)
+        limit = self.cfg.forget_edge_after
+        if limit and last is not None and round_index - last - 1 >= limit:
+            self.edge_duals.pop(j, None)
+            self.edge_round.pop(j, None)
 
     @torch.no_grad()
     def add_penalty_grad(self, params: Sequence[Tensor]) -> None:
@@ -108,6 +124,7 @@ class Consensus:
         round's ``begin_round`` sums them)."""
         for j, theta_j in neighbours.items():
             edge = self.edge_duals.setdefault(j, [z.clone() for z in self._zeros])
+            self.edge_round[j] = self.round
             for y, o, t in zip(edge, own, theta_j):
                 y.add_(o.detach() - t, alpha=self.rho)
 
@@ -116,13 +133,14 @@ class Consensus:
         """Forget the accumulated disagreement (theta_i was replaced: the old duals priced a model
         that is gone)."""
         self.edge_duals.clear()
+        self.edge_round.clear()
         for y in self.duals:
             y.zero_()
 
     # --- persistence ---------------------------------------------------------------------
     def state_dict(self) -> dict:
         return {"edge_duals": {j: [d.clone() for d in y] for j, y in self.edge_duals.items()},
-                "rho": self.rho, "round": self.round}
+                "edge_round": dict(self.edge_round), "rho": self.rho, "round": self.round}
 
     def load_state_dict(self, state: dict) -> None:
         if "edge_duals" not in state:
@@ -132,6 +150,8 @@ class Consensus:
             if len(y) != len(self._zeros) or any(a.shape != b.shape for a, b in zip(y, self._zeros)):
                 raise ValueError("consensus state does not match the model's parameter shapes")
         self.edge_duals = {int(j): [d.clone() for d in y] for j, y in edges.items()}
+        # A checkpoint from before edge_round: every edge counts as updated in its round.
+        self.edge_round = {int(j): int(r) for j, r in state.get("edge_round", {j: state["round"] for j in edges}).items()}
         self.duals = [z.clone() for z in self._zeros]
         self.rho = float(state["rho"])
         self.round = int(state["round"])

@@ -119,3 +119,29 @@ def test_reset_duals_forgets_the_disagreement_only():
     assert torch.equal(c.duals[0], torch.zeros(4)) and not c.edge_duals and c.rho == 0.5
     c.begin_round(2, [p], {2: [p]})
     assert torch.equal(c.duals[0], torch.zeros(4))
+
+
+def test_an_edge_silent_for_forget_edge_after_rounds_restarts_its_dual():
+    """A cut link heals: the dual it had priced a disagreement of rounds ago and must not push now;
+    a single missed round (a late snapshot) keeps it."""
+    p = torch.zeros(2)
+    for limit, kept in ((2, False), (3, True), (0, True)):
+        c = Consensus([p], ConsensusConfig(rho0=1.0, forget_edge_after=limit))
+        c.begin_round(0, [p], {2: [p], 3: [p]})
+        c.dual_update([torch.zeros(2)], {2: [torch.ones(2)], 3: [torch.ones(2)]})  # y_12 = y_13 = -1
+        for k in (1, 2):  # robot 2 silent for rounds 1 and 2; robot 3 heard throughout
+            c.begin_round(k, [p], {3: [p]})
+            c.dual_update([torch.zeros(2)], {3: [torch.zeros(2)]})
+        c.begin_round(3, [p], {2: [p], 3: [p]})
+        assert torch.equal(c.duals[0], -2 * torch.ones(2) if kept else -torch.ones(2)), (limit, c.duals[0])
+        assert (2 in c.edge_duals) == kept
+    c = Consensus([p], ConsensusConfig(rho0=1.0))
+    c.begin_round(0, [p], {2: [p]})
+    c.dual_update([torch.zeros(2)], {2: [torch.ones(2)]})
+    c.begin_round(2, [p], {2: [p]})  # one round missed: kept
+    assert torch.equal(c.duals[0], -torch.ones(2))
+    c2 = Consensus([p], ConsensusConfig())
+    c2.load_state_dict(c.state_dict())
+    assert c2.edge_round == {2: 0}
+    with pytest.raises(ValueError, match="forget_edge_after"):
+        ConsensusConfig(forget_edge_after=-1)
