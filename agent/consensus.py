@@ -123,6 +123,7 @@ class Consensus:
         """``y_ij += rho_k (theta_i^{k+1} - theta_j^{k+1})`` for the neighbours heard (the next
         round's ``begin_round`` sums them)."""
         for j, theta_j in neighbours.items():
+            self._forget_if_silent(j, self.round)  # a returning edge is usually seen here first
             edge = self.edge_duals.setdefault(j, [z.clone() for z in self._zeros])
             self.edge_round[j] = self.round
             for y, o, t in zip(edge, own, theta_j):

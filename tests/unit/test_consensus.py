@@ -135,6 +135,18 @@ def test_an_edge_silent_for_forget_edge_after_rounds_restarts_its_dual():
         c.begin_round(3, [p], {2: [p], 3: [p]})
         assert torch.equal(c.duals[0], -2 * torch.ones(2) if kept else -torch.ones(2)), (limit, c.duals[0])
         assert (2 in c.edge_duals) == kept
+    # The daemon's order: the returning neighbour is heard at the end of a round (dual update)
+    # before any begin_round sees it; the stale dual must not be accumulated onto.
+    for limit, expect in ((2, -1.0), (0, -2.0)):
+        c = Consensus([p], ConsensusConfig(rho0=1.0, forget_edge_after=limit))
+        c.begin_round(0, [p], {2: [p]})
+        c.dual_update([torch.zeros(2)], {2: [torch.ones(2)]})  # y_12 = -1
+        for k in (1, 2, 3):
+            c.begin_round(k, [p], {})
+            if k == 3:  # robot 2 heard again at the end of round 3
+                c.dual_update([torch.zeros(2)], {2: [torch.ones(2)]})
+        c.begin_round(4, [p], {2: [p]})
+        assert torch.equal(c.duals[0], torch.full((2,), expect)), (limit, c.duals[0])
     c = Consensus([p], ConsensusConfig(rho0=1.0))
     c.begin_round(0, [p], {2: [p]})
     c.dual_update([torch.zeros(2)], {2: [torch.ones(2)]})
