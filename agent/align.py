@@ -40,7 +40,8 @@ import numpy as np
 import torch
 
 from agent.data.views import Views
-from agent.geometry import umeyama, umeyama_batched
+from agent.geometry import sim3_from_params, sim3_inverse, so3_exp, umeyama, umeyama_batched
+from protocol.messages import KEYFRAME_CAMERA_DIM
 
 __all__ = [
     "AlignConfig",
@@ -52,12 +53,13 @@ __all__ = [
     "initial_pose",
     "match_summaries",
     "ransac_sim3",
+    "refine_by_reprojection",
     "triangulate_rays",
 ]
 
-SUMMARY_VERSION = 1
+SUMMARY_VERSION = 2  # 2: keypoints and keyframe cameras (for the reprojection refinement)
 _DESC_DIM = 128
-_BYTES_PER_POINT = _DESC_DIM + 3 * 4 + 4  # uint8 descriptor + float32 xyz + int32 keyframe
+_BYTES_PER_POINT = _DESC_DIM + 3 * 4 + 4 + 2 * 4  # uint8 descriptor + float32 xyz + int32 keyframe + float32 uv
 
 
 @dataclass(frozen=True)
@@ -87,6 +89,15 @@ class AlignConfig:
     inlier_threshold: float = 0.04  # fraction of the scene radius of the summary we map into
     min_sample_spread: float = 0.05  # minimal samples must span a triangle this wide (x radius)
     refine_iters: int = 5
+    # Reprojection refinement (when both summaries carry keypoints and keyframe cameras): the 3-D
+    # points' error lies mostly along their viewing rays (depth from a narrow baseline), which a
+    # 3-D/3-D fit weighs as much as the lateral error. Measuring each match in pixels of the other
+    # robot's keyframe weighs it as the cameras saw it, as ORB-SLAM's Sim(3) loop closure does.
+    reproj_refine: bool = True
+    reproj_candidates: float = 2.0  # matches within this x the 3-D inlier threshold take part
+    reproj_scale_px: float = 1.0  # Cauchy loss scale, in pixels of the keyframes
+    reproj_iters: int = 30  # Levenberg-Marquardt iterations
+    reproj_max_change_deg: float = 5.0  # a refinement that turns the 3-D estimate more is refused
     seed: int = 0
     # --- decision ---
     min_inliers: int = 12
@@ -108,6 +119,8 @@ class Summary:
     points: np.ndarray  # [P, 3] float32, robot's local frame
     keyframe_index: np.ndarray  # [P] int32, which keyframe (0..K-1) saw the feature
     descriptor_scale: float = 512.0
+    keypoints: np.ndarray | None = None  # [P, 2] float32: OpenCV pixel position in its keyframe
+    keyframe_cameras: np.ndarray | None = None  # [K, 16] float32: c2w rows 0-2 (OpenGL) + fx, fy, cx, cy
     meta: dict = field(default_factory=dict)  # local statistics only; not part of the payload
 
     def __post_init__(self) -> None:
@@ -122,6 +135,22 @@ class Summary:
                              f"{self.keyframe_index.shape}")
         if not (self.descriptor_scale > 0 and math.isfinite(self.descriptor_scale)):
             raise ValueError(f"descriptor_scale must be positive, got {self.descriptor_scale}")
+        if (self.keypoints is None) != (self.keyframe_cameras is None):
+            raise ValueError("keypoints and keyframe_cameras come together (or neither)")
+        if self.keypoints is not None:
+            kp, cams = self.keypoints, self.keyframe_cameras
+            if kp.dtype != np.float32 or kp.shape != (p, 2) or not np.isfinite(kp).all():
+                raise ValueError(f"keypoints must be finite float32 [{p}, 2], got {kp.dtype} {kp.shape}")
+            if cams.dtype != np.float32 or cams.ndim != 2 or cams.shape[1] != KEYFRAME_CAMERA_DIM or not np.isfinite(cams).all():
+                raise ValueError(f"keyframe_cameras must be finite float32 [K, {KEYFRAME_CAMERA_DIM}], got {cams.dtype} {cams.shape}")
+            if p and (self.keyframe_index.min() < 0 or self.keyframe_index.max() >= len(cams)):
+                raise ValueError(f"keyframe_index outside the {len(cams)} keyframe cameras")
+            if len(cams) and not (cams[:, 12:14] > 0).all():
+                raise ValueError("keyframe focal lengths must be positive")
+
+    @property
+    def has_cameras(self) -> bool:
+        return self.keypoints is not None
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -129,7 +158,8 @@ class Summary:
     @property
     def nbytes(self) -> int:
         """Bytes of the arrays that cross the network (before any compression)."""
-        return int(self.descriptors.nbytes + self.points.nbytes + self.keyframe_index.nbytes)
+        extra = 0 if self.keypoints is None else self.keypoints.nbytes + self.keyframe_cameras.nbytes
+        return int(self.descriptors.nbytes + self.points.nbytes + self.keyframe_index.nbytes + extra)
 
     def radius(self) -> float:
         """Robust scene radius: median distance of the points to their per-axis median."""
@@ -139,24 +169,30 @@ class Summary:
 
     def to_arrays(self) -> dict:
         """Plain payload for the protocol layer (numpy arrays and scalars only)."""
-        return {
+        out = {
             "version": SUMMARY_VERSION,
             "descriptor_scale": float(self.descriptor_scale),
             "descriptors": self.descriptors,
             "points": self.points,
             "keyframe_index": self.keyframe_index,
         }
+        if self.has_cameras:
+            out.update(keypoints=self.keypoints, keyframe_cameras=self.keyframe_cameras)
+        return out
 
     @classmethod
     def from_arrays(cls, payload: Mapping) -> "Summary":
         """Inverse of :meth:`to_arrays`; validates everything (the payload came from another robot)."""
-        if payload.get("version") != SUMMARY_VERSION:
-            raise ValueError(f"summary version {payload.get('version')!r}, expected {SUMMARY_VERSION}")
+        if payload.get("version") not in (1, SUMMARY_VERSION):
+            raise ValueError(f"summary version {payload.get('version')!r}, expected 1 or {SUMMARY_VERSION}")
+        kp, cams = payload.get("keypoints"), payload.get("keyframe_cameras")
         return cls(
             descriptors=np.asarray(payload["descriptors"]),
             points=np.asarray(payload["points"]),
             keyframe_index=np.asarray(payload["keyframe_index"]),
             descriptor_scale=float(payload["descriptor_scale"]),
+            keypoints=None if kp is None else np.asarray(kp),
+            keyframe_cameras=None if cams is None else np.asarray(cams),
         )
 
 
@@ -324,7 +360,7 @@ def summarise(views: Views, points_source: Literal["auto", "depth", "triangulate
         return feats[i]
 
     matcher = cv2.BFMatcher(cv2.NORM_L2)
-    out_desc, out_pts, out_kf, out_rank = [], [], [], []
+    out_desc, out_pts, out_kf, out_rank, out_xy = [], [], [], [], []
     stats = {"depth": 0, "triangulated": 0, "candidates": 0}
     for kf_slot, key in enumerate(keys):
         xy_k, desc_k, resp_k = features(key)
@@ -404,6 +440,7 @@ def summarise(views: Views, points_source: Literal["auto", "depth", "triangulate
         out_desc.append(desc_k[sel])
         out_pts.append(pts[sel])
         out_kf.append(np.full(len(sel), kf_slot, dtype=np.int32))
+        out_xy.append(xy_k[sel])
         out_rank.append(np.stack([nviews[sel], resp_k[sel]], 1))
 
     if out_desc:
@@ -411,9 +448,12 @@ def summarise(views: Views, points_source: Literal["auto", "depth", "triangulate
         pts = np.concatenate(out_pts)
         kf = np.concatenate(out_kf)
         rank = np.concatenate(out_rank)
+        xy = np.concatenate(out_xy)
     else:
         desc, pts, kf, rank = np.zeros((0, _DESC_DIM), np.float32), np.zeros((0, 3)), np.zeros(0, np.int32), np.zeros((0, 2))
-    keep = _budget(kf, rank, cfg.max_bytes // _BYTES_PER_POINT)
+        xy = np.zeros((0, 2))
+    cameras = np.concatenate([c2w[keys, :3, :4].reshape(len(keys), 12), intr[keys]], 1).astype(np.float32)
+    keep = _budget(kf, rank, max(cfg.max_bytes - cameras.nbytes, 0) // _BYTES_PER_POINT)
     quant = np.clip(np.rint(desc[keep] * cfg.descriptor_scale), 0, 255).astype(np.uint8)
     image_bytes = int(views.images.numel() * views.images.element_size())
     return Summary(
@@ -421,6 +461,8 @@ def summarise(views: Views, points_source: Literal["auto", "depth", "triangulate
         points=pts[keep].astype(np.float32),
         keyframe_index=kf[keep].astype(np.int32),
         descriptor_scale=cfg.descriptor_scale,
+        keypoints=xy[keep].astype(np.float32),
+        keyframe_cameras=cameras,
         meta={"keyframes": [views.names[k] for k in keys], "points_source": source, **stats,
               "image_bytes_in_memory": image_bytes, "image_size": (views.width, views.height)},
     )
@@ -602,8 +644,106 @@ def estimate_relative(summary_a: Summary, summary_b: Summary, cfg: AlignConfig =
         fail = f"scale {scale:.3g} outside {cfg.scale_range}"
     if fail is not None:
         return AlignmentResult(None, inl, n, rmse, False, fail, null_inl, scale)
-    return AlignmentResult(model, inl, n, rmse, True,
-                           f"{inl} inliers of {n} matches (chance level {null_inl}), rmse {rmse:.3g}", null_inl, scale)
+    reason = f"{inl} inliers of {n} matches (chance level {null_inl}), rmse {rmse:.3g}"
+    if cfg.reproj_refine and summary_a.has_cameras and summary_b.has_cameras:
+        r2 = ((pb @ model[:3, :3].T + model[:3, 3] - pa) ** 2).sum(1)
+        cand = pairs[r2 < (cfg.reproj_candidates * thr) ** 2]
+        refined, note = refine_by_reprojection(model, summary_a, summary_b, cand, cfg)
+        if refined is not None:
+            model = refined
+            scale = float(np.cbrt(abs(np.linalg.det(model[:3, :3]))))
+        reason += f"; {note}"
+    return AlignmentResult(model, inl, n, rmse, True, reason, null_inl, scale)
+
+
+def _project_torch(cams: torch.Tensor, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-point cameras [N, 16] (c2w rows + fx fy cx cy), points [N, 3] -> (OpenCV uv [N, 2], z [N])."""
+    rot = cams[:, :12].reshape(-1, 3, 4)[:, :, :3]
+    centre = cams[:, :12].reshape(-1, 3, 4)[:, :, 3]
+    cam = torch.einsum("nij,ni->nj", rot, pts - centre)  # R^T (x - c)
+    z = -cam[:, 2]
+    zs = torch.where(z.abs() > 1e-9, z, torch.full_like(z, 1e-9))
+    u = cams[:, 12] * cam[:, 0] / zs + cams[:, 14] - 0.5
+    v = -cams[:, 13] * cam[:, 1] / zs + cams[:, 15] - 0.5
+    return torch.stack([u, v], 1), z
+
+
+def refine_by_reprojection(model: np.ndarray, a: Summary, b: Summary, pairs: np.ndarray,
+                           cfg: AlignConfig = AlignConfig()) -> tuple[np.ndarray | None, str]:
+    """Refine ``T_a_from_b`` on the symmetric reprojection error of matched points.
+
+    For a match (point of a, point of b): b's point mapped by T must land on a's keypoint in a's
+    keyframe, and a's point mapped by T^-1 on b's keypoint in b's keyframe. Levenberg-Marquardt
+    on a Cauchy loss (pixels) over the 7 (or 6) parameters of a perturbation of T. Returns
+    (None, why) and leaves the estimate alone when there is too little to go on, the points fall
+    behind the cameras, or the result turns away from the 3-D estimate by more than
+    ``cfg.reproj_max_change_deg``.
+    """
+    if len(pairs) < max(cfg.min_inliers, 4):
+        return None, f"reprojection refinement skipped ({len(pairs)} candidate matches)"
+    f64 = torch.float64
+    xa = torch.from_numpy(a.points[pairs[:, 0]].astype(np.float64))
+    xb = torch.from_numpy(b.points[pairs[:, 1]].astype(np.float64))
+    ua = torch.from_numpy(a.keypoints[pairs[:, 0]].astype(np.float64))
+    ub = torch.from_numpy(b.keypoints[pairs[:, 1]].astype(np.float64))
+    cam_a = torch.from_numpy(a.keyframe_cameras[a.keyframe_index[pairs[:, 0]]].astype(np.float64))
+    cam_b = torch.from_numpy(b.keyframe_cameras[b.keyframe_index[pairs[:, 1]]].astype(np.float64))
+    t0 = torch.from_numpy(model.astype(np.float64))
+    c2 = cfg.reproj_scale_px ** 2
+
+    def transform(xi: torch.Tensor) -> torch.Tensor:
+        log_s = xi[6] if cfg.with_scale else torch.zeros((), dtype=f64)
+        return t0 @ sim3_from_params(log_s, xi[:3], xi[3:6])
+
+    def residuals(xi: torch.Tensor) -> torch.Tensor:  # [4N]: a's image (u, v), b's image (u, v)
+        t = transform(xi)
+        t_inv = sim3_inverse(t)
+        uv_a, za = _project_torch(cam_a, xb @ t[:3, :3].T + t[:3, 3])
+        uv_b, zb = _project_torch(cam_b, xa @ t_inv[:3, :3].T + t_inv[:3, 3])
+        return torch.cat([uv_a - ua, uv_b - ub], 0).reshape(-1)
+
+    def cost(r: torch.Tensor) -> float:
+        return float(torch.log1p((r * r) / c2).sum())
+
+    xi = torch.zeros(7, dtype=f64)
+    r = residuals(xi)
+    if not torch.isfinite(r).all():
+        return None, "reprojection refinement skipped (points at a camera centre)"
+    start_px = float(r.reshape(2, -1, 2).norm(dim=2).max(0).values.median())  # the worse view per match
+    lam, best = 1e-3, cost(r)
+    for _ in range(cfg.reproj_iters):
+        jac = torch.func.jacfwd(residuals)(xi)  # [4N, 7]: 7 forward passes
+        if not cfg.with_scale:
+            jac[:, 6] = 0
+        w = 1.0 / (1.0 + r * r / c2)  # IRLS weights of the Cauchy loss
+        jtj = jac.T @ (w[:, None] * jac)
+        g = jac.T @ (w * r)
+        improved = False
+        for _ in range(10):
+            step = torch.linalg.solve(jtj + lam * torch.diag(jtj.diagonal().clamp_min(1e-12)) + 1e-12 * torch.eye(7, dtype=f64), -g)
+            r_new = residuals(xi + step)
+            c_new = cost(r_new) if torch.isfinite(r_new).all() else math.inf
+            if c_new < best:
+                xi, r, best, lam, improved = xi + step, r_new, c_new, max(lam / 3, 1e-7), True
+                break
+            lam *= 4
+        if not improved or float(step.abs().max()) < 1e-10:
+            break
+    t = transform(xi)
+    with torch.no_grad():
+        t_inv = sim3_inverse(t)
+        _, za = _project_torch(cam_a, xb @ t[:3, :3].T + t[:3, 3])
+        _, zb = _project_torch(cam_b, xa @ t_inv[:3, :3].T + t_inv[:3, 3])
+    per_match = r.reshape(2, -1, 2).norm(dim=2).max(0).values  # [N] the worse of the two views
+    good = int(((per_match < 3 * cfg.reproj_scale_px) & (za > 0) & (zb > 0)).sum())
+    turn = float(torch.rad2deg(so3_exp(xi[:3]).diagonal().sum().sub(1).div(2).clamp(-1, 1).acos()))
+    if good < cfg.min_inliers:
+        return None, f"reprojection refinement refused: {good} matches within {3 * cfg.reproj_scale_px:g} px"
+    if turn > cfg.reproj_max_change_deg:
+        return None, f"reprojection refinement refused: it turned the estimate by {turn:.1f} deg"
+    end_px = float(per_match.median())
+    return t.detach().numpy(), (f"refined on reprojection: {good} of {len(pairs)} matches within "
+                                f"{3 * cfg.reproj_scale_px:g} px, median {start_px:.2f} -> {end_px:.2f} px")
 
 
 # --------------------------------------------------------------------------------------------
@@ -670,6 +810,4 @@ def initial_pose(own: Views | Summary, reference: Summary, cfg: AlignConfig = Al
 
 
 def _sim3_inv(t: np.ndarray) -> np.ndarray:
-    from agent.geometry import sim3_inverse
-
     return sim3_inverse(torch.from_numpy(t)).numpy()

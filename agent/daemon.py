@@ -643,7 +643,7 @@ class Daemon:
         image_bytes = int(self.setup.trainer.views.images.numel())  # 8-bit channels it stands for
         msg = KeyframeSummary(swarm=self.swarm.name, sender=self.robot_id, round=0, epoch=self.membership.epoch,
                               descriptors=own.descriptors, points=own.points, keyframe_index=own.keyframe_index,
-                              image_bytes=image_bytes)
+                              image_bytes=image_bytes, keypoints=own.keypoints, keyframe_cameras=own.keyframe_cameras)
         data = codec.encode(msg)
         self.net.set_keyframes(data)
         self._event("keyframes", bytes=len(data), image_bytes=image_bytes, points=len(own),
@@ -671,7 +671,8 @@ class Daemon:
                         continue
                     try:
                         km = codec.decode(raw, self.status_expect, kind="keyframes", key=self.keys.parse(self.keys.keyframes(j)))
-                        summaries[j] = Summary(km.descriptors, km.points, km.keyframe_index, acfg.descriptor_scale)
+                        summaries[j] = Summary(km.descriptors, km.points, km.keyframe_index, acfg.descriptor_scale,
+                                               keypoints=km.keypoints, keyframe_cameras=km.keyframe_cameras)
                     except (Rejected, ValueError) as e:
                         self._reject(getattr(e, "reason", "bad_field"), f"keyframes of robot {j}: {e}")
                         continue

@@ -48,6 +48,9 @@ class PoseConfig:
     lr_scale: float = 1e-3  # log-scale per step (sim3 only)
     start_step: int = 0  # the pose waits this many steps for the shared field to form
     decay_to: float = 0.1  # pose lr decays geometrically to this fraction at the end
+    lr_factor_from_estimate: float = 1.0  # pose lrs x this when the start came from an estimate
+    # (the coarse alignment): Adam moves ~lr per step whatever the gradient, so a start already
+    # within ~0.1 deg is shaken loose by full-size steps against a young field
 
 
 @dataclass
@@ -105,6 +108,7 @@ class RelativePose(nn.Module):
         self.phi = nn.Parameter(torch.zeros(3))
         self.translation = nn.Parameter(torch.zeros(3))
         self.log_scale = nn.Parameter(torch.zeros(()))
+        self.from_estimate = False  # T0 came from an estimate (coarse alignment), not the identity
         self.set_trainable(mode != "fixed")
 
     def set_trainable(self, trainable: bool) -> None:
@@ -144,6 +148,7 @@ class RelativePose(nn.Module):
         self.base.copy_(transform.to(self.base))
         for p in (self.phi, self.translation, self.log_scale):
             p.zero_()
+        self.from_estimate = True
 
     def unfreeze(self) -> None:
         """Learn again (a robot with a lower id came back and is the reference again)."""
@@ -189,6 +194,7 @@ class RobotTrainer:
         self.grid = OccupancyGrid(cfg.occupancy, dev)
         initial = torch.eye(4) if initial_pose is None else initial_pose
         self.pose = RelativePose(initial, box_from_shared, cfg.pose.mode).to(dev)
+        self.pose.from_estimate = initial_pose is not None
         m = len(views)
         self.depth_log_scale = nn.Parameter(torch.zeros(m, device=dev))  # log a_m
         self.depth_shift = nn.Parameter(torch.zeros(m, device=dev))  # b_m
@@ -262,7 +268,8 @@ class RobotTrainer:
         if step < p.start_step:
             return 0.0
         span = max(self.cfg.total_steps - p.start_step, 1)
-        return p.decay_to ** ((step - p.start_step) / span)
+        factor = p.lr_factor_from_estimate if self.pose.from_estimate else 1.0
+        return factor * p.decay_to ** ((step - p.start_step) / span)
 
     def level_weights(self, step: int | None = None) -> Tensor | None:
         c = self.cfg.coarse_to_fine
@@ -406,6 +413,7 @@ class RobotTrainer:
             "grid": self.grid.state_dict(),
             "pose": self.pose.state_dict(),
             "pose_trainable": self.pose.trainable,
+            "pose_from_estimate": self.pose.from_estimate,
             "depth": {"log_scale": self.depth_log_scale.detach().clone(), "shift": self.depth_shift.detach().clone()},
             "optimizer": self.optimizer.state_dict(),
             "consensus": None if self.consensus is None else self.consensus.state_dict(),
@@ -420,6 +428,7 @@ class RobotTrainer:
         self.grid.load_state_dict(state["grid"])
         self.pose.load_state_dict(state["pose"])
         self.pose.set_trainable(bool(state["pose_trainable"]))
+        self.pose.from_estimate = bool(state.get("pose_from_estimate", False))
         with torch.no_grad():
             self.depth_log_scale.copy_(state["depth"]["log_scale"])
             self.depth_shift.copy_(state["depth"]["shift"])

@@ -50,6 +50,8 @@ import zstandard
 from protocol.keys import ParsedKey, validate_swarm
 from protocol.messages import (
     COMPRESSIONS,
+    KEYFRAME_ARRAYS,
+    KEYFRAME_CAMERA_DIM,
     KIND_KEYFRAMES,
     KIND_STATUS,
     KIND_THETA,
@@ -119,6 +121,7 @@ class Expectation:
     max_tensors: int = 4096
     max_header_bytes: int = 1 * MiB
     max_keyframe_points: int = 200_000
+    max_keyframes: int = 4096
     max_descriptor_dim: int = 1024
     signature: str = field(init=False, default="")
 
@@ -281,11 +284,23 @@ def _encode_keyframes(msg: KeyframeSummary, compression: str, level: int) -> byt
         raise ValueError("non-finite values in the keyframe summary")
     if not is_int(msg.image_bytes) or msg.image_bytes < 0:
         raise ValueError("image_bytes must be a non-negative int")
-    raw, table = _pack_arrays([
+    arrays = [
         ("descriptors", d, _ARRAY_DTYPES["uint8" if d.dtype == np.uint8 else "float32"]),
         ("points", p, _ARRAY_DTYPES["float32"]),
         ("keyframe_index", k, _ARRAY_DTYPES["int32"]),
-    ])
+    ]
+    if (msg.keypoints is None) != (msg.keyframe_cameras is None):
+        raise ValueError("keypoints and keyframe_cameras go together (or neither)")
+    if msg.keypoints is not None:
+        uv, cams = np.asarray(msg.keypoints), np.asarray(msg.keyframe_cameras)
+        if uv.shape != (d.shape[0], 2) or cams.ndim != 2 or cams.shape[1] != KEYFRAME_CAMERA_DIM:
+            raise ValueError(f"keypoints must be [P, 2] and keyframe_cameras [K, {KEYFRAME_CAMERA_DIM}]")
+        if not (np.isfinite(uv).all() and np.isfinite(cams).all()):
+            raise ValueError("non-finite values in the keyframe summary")
+        if k.size and k.max() >= cams.shape[0]:
+            raise ValueError("keyframe_index beyond the keyframe cameras")
+        arrays += [("keypoints", uv, _ARRAY_DTYPES["float32"]), ("keyframe_cameras", cams, _ARRAY_DTYPES["float32"])]
+    raw, table = _pack_arrays(arrays)
     return _seal(KIND_KEYFRAMES, msg, "", "float32", compression, level, raw, table,
                  {"image_bytes": msg.image_bytes})
 
@@ -492,9 +507,10 @@ def _check_array_table(table: Any, msg_kind: str, wire_dtype: str,
 
     # keyframes
     names = [e[0] for e in entries]
-    if names != ["descriptors", "points", "keyframe_index"]:
-        raise Rejected("bad_shape", f"keyframe arrays {names[:4]}, want descriptors, points, keyframe_index")
-    (_, d_dtype, d_shape), (_, p_dtype, p_shape), (_, k_dtype, k_shape) = entries
+    if names not in (list(KEYFRAME_ARRAYS[:3]), list(KEYFRAME_ARRAYS)):
+        raise Rejected("bad_shape", f"keyframe arrays {names[:6]}, want {', '.join(KEYFRAME_ARRAYS[:3])}"
+                                    f" [, {', '.join(KEYFRAME_ARRAYS[3:])}]")
+    (_, d_dtype, d_shape), (_, p_dtype, p_shape), (_, k_dtype, k_shape) = entries[:3]
     if d_dtype not in ("uint8", "float32") or p_dtype != "float32" or k_dtype != "int32":
         raise Rejected("bad_shape", "keyframe dtypes must be uint8|float32, float32, int32")
     if len(d_shape) != 2 or not 1 <= d_shape[1] <= expect.max_descriptor_dim:
@@ -504,6 +520,14 @@ def _check_array_table(table: Any, msg_kind: str, wire_dtype: str,
         raise Rejected("bad_shape", f"points {list(p_shape)} / keyframe_index {list(k_shape)} vs P={count}")
     if count > expect.max_keyframe_points:
         raise Rejected("too_large", f"{count} keyframe points > cap {expect.max_keyframe_points}")
+    if len(entries) == 5:
+        (_, uv_dtype, uv_shape), (_, c_dtype, c_shape) = entries[3:]
+        if uv_dtype != "float32" or c_dtype != "float32":
+            raise Rejected("bad_shape", "keypoints and keyframe_cameras must be float32")
+        if uv_shape != (count, 2) or len(c_shape) != 2 or c_shape[1] != KEYFRAME_CAMERA_DIM:
+            raise Rejected("bad_shape", f"keypoints {list(uv_shape)} / keyframe_cameras {list(c_shape)[:4]} vs P={count}")
+        if c_shape[0] > expect.max_keyframes:
+            raise Rejected("too_large", f"{c_shape[0]} keyframes > cap {expect.max_keyframes}")
     return [(name, _ARRAY_DTYPES[dtype], shape) for name, dtype, shape in entries]
 
 
@@ -572,9 +596,16 @@ def _decode_body(parsed: _Parsed, expect: Expectation) -> Message:
     if h.kind == KIND_THETA:
         return ThetaSnapshot(swarm=h.swarm, sender=h.sender, round=h.round, epoch=h.epoch,
                              signature=h.signature, tensors=arrays, header=h)
-    if arrays["keyframe_index"].size and arrays["keyframe_index"].min() < 0:
+    index = arrays["keyframe_index"]
+    if index.size and index.min() < 0:
         raise Rejected("bad_field", "negative keyframe index")
+    cams = arrays.get("keyframe_cameras")
+    if cams is not None:
+        if index.size and index.max() >= len(cams):
+            raise Rejected("bad_field", f"keyframe index {int(index.max())} beyond the {len(cams)} keyframe cameras")
+        if len(cams) and not (cams[:, 12:14] > 0).all():
+            raise Rejected("bad_field", "keyframe focal lengths must be positive")
     return KeyframeSummary(swarm=h.swarm, sender=h.sender, round=h.round, epoch=h.epoch,
                            descriptors=arrays["descriptors"], points=arrays["points"],
-                           keyframe_index=arrays["keyframe_index"],
-                           image_bytes=parsed.meta["image_bytes"], header=h)
+                           keyframe_index=index, image_bytes=parsed.meta["image_bytes"],
+                           keypoints=arrays.get("keypoints"), keyframe_cameras=cams, header=h)

@@ -40,6 +40,8 @@ MAX_ROUND = 2**31 - 1
 KIND_THETA = "theta"
 KIND_STATUS = "status"
 KIND_KEYFRAMES = "keyframes"
+KEYFRAME_ARRAYS = ("descriptors", "points", "keyframe_index", "keypoints", "keyframe_cameras")  # wire order
+KEYFRAME_CAMERA_DIM = 16  # per keyframe: camera-to-world rows 0-2 (OpenGL, 12) + fx, fy, cx, cy
 KINDS = (KIND_THETA, KIND_STATUS, KIND_KEYFRAMES)
 
 WIRE_DTYPES = ("float32", "float16")
@@ -254,6 +256,9 @@ class KeyframeSummary:
     ``descriptors`` [P, D] uint8 (binary, e.g. ORB) or float32; ``points`` [P, 3] float32, the
     3-D points in the sender's frame; ``keyframe_index`` [P] int32, which keyframe each came
     from. ``image_bytes`` is informational (how much image data this summary stands for).
+    Optional, together: ``keypoints`` [P, 2] float32, each feature's pixel position in its
+    keyframe, and ``keyframe_cameras`` [K, 16] float32, each keyframe's camera-to-world rows 0-2
+    and fx, fy, cx, cy; with them a receiver can measure matches in pixels.
     """
 
     swarm: str
@@ -264,6 +269,8 @@ class KeyframeSummary:
     points: np.ndarray
     keyframe_index: np.ndarray
     image_bytes: int = 0
+    keypoints: np.ndarray | None = None
+    keyframe_cameras: np.ndarray | None = None
     header: Header | None = None
 
     kind = KIND_KEYFRAMES

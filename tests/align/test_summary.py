@@ -1,5 +1,7 @@
 """Keyframe summaries from rendered views, and the coarse estimate between two robots end to end."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -81,3 +83,45 @@ def test_robots_of_different_scenes_do_not_align(scene):
     cfg = AlignConfig(num_keyframes=8)
     res = estimate_relative(summarise(a, "triangulate", cfg), summarise(other, "triangulate", cfg), cfg)
     assert not res.success and res.T_a_from_b is None, res
+
+
+def test_reprojection_refinement_tightens_the_3d_fit(scene):
+    """Keypoints and keyframe cameras travel with the summary; measuring the matches in pixels
+    beats the 3-D/3-D fit, whose points are uncertain mostly along their viewing rays."""
+    g = torch.Generator().manual_seed(11)
+    t_b = torch.eye(4, dtype=torch.float64)
+    t_b[:3, :3] = 2.0 * G.random_rotation(g, 180.0)
+    t_b[:3, 3] = torch.tensor([-7.0, 3.0, 5.0], dtype=torch.float64)
+    a = _robot(scene, np.arange(0, 150, 8))
+    b = _robot(scene, np.arange(100, 250, 8), t_b)
+    cfg = AlignConfig(num_keyframes=8)
+    sa, sb = summarise(a, "triangulate", cfg), summarise(b, "triangulate", cfg)
+    rng = np.random.default_rng(0)
+    for s in (sa, sb):  # each keypoint is where its point projects in its keyframe
+        # ... and then 3% depth noise along the viewing rays, the error of a narrow-baseline
+        # triangulation (lego at 100 px), which the 3-D fit cannot tell from lateral error.
+        centres = s.keyframe_cameras[s.keyframe_index][:, [3, 7, 11]].astype(np.float64)
+        clean = s.points.astype(np.float64)
+        ray = clean - centres
+        cams = s.keyframe_cameras[s.keyframe_index].astype(np.float64)
+        c2w = np.concatenate([cams[:, :12].reshape(-1, 3, 4), np.tile([[[0, 0, 0, 1.0]]], (len(s), 1, 1))], 1)
+        uv = np.stack([_project(c2w[i], cams[i, 12:], s.points[i:i + 1].astype(np.float64))[0][0] for i in range(len(s))])
+        assert np.median(np.linalg.norm(uv - s.keypoints, axis=1)) < 0.5
+        s.points[:] = (centres + ray * (1 + 0.03 * rng.standard_normal((len(s), 1)))).astype(np.float32)
+    truth = G.sim3_inverse(t_b)  # T_a_from_b: a's frame is the world
+
+    def camera_error(res):
+        est = G.transform_points(torch.from_numpy(res.T_a_from_b), b.c2w[:, :3, 3].double())
+        return float((est - G.transform_points(truth, b.c2w[:, :3, 3].double())).norm(dim=1).mean())
+
+    fit_3d = estimate_relative(sa, sb, dataclasses.replace(cfg, reproj_refine=False))
+    refined = estimate_relative(sa, sb, cfg)
+    assert fit_3d.success and refined.success and "refined on reprojection" in refined.reason, refined.reason
+    err_3d = G.pose_error(torch.from_numpy(fit_3d.T_a_from_b), truth)
+    err = G.pose_error(torch.from_numpy(refined.T_a_from_b), truth)
+    print(f"3-D fit {err_3d}, cameras {camera_error(fit_3d):.4f}; refined {err}, cameras {camera_error(refined):.4f}")
+    assert camera_error(refined) < 0.7 * camera_error(fit_3d)
+    assert err["rotation_deg"] < err_3d["rotation_deg"] and err["rotation_deg"] < 0.2
+    # Without cameras on one side (an older peer), the 3-D fit is what comes back.
+    bare = dataclasses.replace(sb, keypoints=None, keyframe_cameras=None)
+    assert np.array_equal(estimate_relative(sa, bare, cfg).T_a_from_b, fit_3d.T_a_from_b)

@@ -275,3 +275,48 @@ def test_model_spec_signature_is_stable_and_sensitive():
 def test_expectation_validates_swarm():
     with pytest.raises(ValueError, match="swarm"):
         Expectation("bad swarm")
+
+
+def _keyframes_with_cameras(points=50, keyframes=5):
+    msg = _keyframes(points=points)
+    rng = np.random.default_rng(4)
+    msg.keypoints = rng.uniform(0, 100, (points, 2)).astype(np.float32)
+    cams = rng.standard_normal((keyframes, 16)).astype(np.float32)
+    cams[:, 12:14] = 90.0  # focal lengths
+    msg.keyframe_cameras = cams
+    return msg
+
+
+def test_keyframe_summary_with_cameras_round_trip_and_refusals():
+    msg = _keyframes_with_cameras()
+    got = decode(encode(msg), expectation(), kind="keyframes")
+    np.testing.assert_array_equal(got.keypoints, msg.keypoints)
+    np.testing.assert_array_equal(got.keyframe_cameras, msg.keyframe_cameras)
+    assert decode(encode(_keyframes()), expectation(), kind="keyframes").keyframe_cameras is None  # optional
+    with pytest.raises(ValueError, match="together"):
+        encode(KeyframeSummary(**{**msg.__dict__, "keyframe_cameras": None}))
+    with pytest.raises(ValueError, match="beyond"):
+        encode(KeyframeSummary(**{**msg.__dict__, "keyframe_cameras": msg.keyframe_cameras[:2]}))
+
+    # Hostile frames that encode() would never write: a sender that lies in its array table.
+    def forged(cams, table_rows):
+        header, _ = split_frame(encode(msg))
+        arrays = [msg.descriptors, msg.points, msg.keyframe_index, msg.keypoints, cams]
+        raw = b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)
+        table = [list(row) for row in header["arrays"]]
+        table[4][2] = list(cams.shape)
+        table.extend(table_rows)
+        return reframe(encode(msg), raw=raw, arrays=table)
+
+    cases = [
+        (forged(msg.keyframe_cameras[:2], []), "bad_field", "beyond"),  # index 4 with 2 cameras
+        (forged(np.where(np.arange(16) == 12, -1.0, msg.keyframe_cameras).astype(np.float32), []), "bad_field", "focal"),
+        (forged(msg.keyframe_cameras[:, :8].copy(), []), "bad_shape", "keyframe_cameras"),
+    ]
+    for data, reason, text in cases:
+        with pytest.raises(Rejected) as exc:
+            decode(data, expectation(), kind="keyframes")
+        assert exc.value.reason == reason and text in str(exc.value), (reason, exc.value)
+    with pytest.raises(Rejected) as exc:
+        decode(encode(msg), expectation(max_keyframes=4), kind="keyframes")
+    assert exc.value.reason == "too_large"
