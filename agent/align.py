@@ -7,13 +7,16 @@ optimisation a starting point from cheap geometry:
 1. :func:`summarise`: each robot picks K keyframes spread over its views and keeps the SIFT
    features (RootSIFT, uint8) that it can place in 3-D in *its own* local frame: from a metric
    depth prior, or by triangulating against its other views with its known local poses. The
-   payload (descriptors [P, 128] uint8, points [P, 3] float32, keyframe_index [P] int32) is a
-   few hundred KB, far less than the images, and reveals no pixels.
+   payload (descriptors [P, 128] uint8, points [P, 3] float32, keyframe_index [P] int32,
+   keypoints [P, 2] float32, keyframe_cameras [K, 16] float32) is a few hundred KB, far less
+   than the images, and reveals no pixels.
 2. :func:`estimate_relative`: a neighbour matches the descriptors (ratio test + mutual check,
    both aware that one 3-D point appears in several keyframes), fits a Sim(3) (or SE(3)) to the
    3-D/3-D matches by RANSAC over minimal Umeyama samples, refits on the inliers and decides.
    The decision compares the inlier count with what the same RANSAC finds on *shuffled*
    matches, so "no overlap" yields ``success=False`` with a reason instead of a wrong pose.
+   The accepted estimate is then refined on the symmetric reprojection error of the matches
+   (:func:`refine_by_reprojection`), which weighs each point as the keyframes saw it.
 3. :func:`compose_along_graph`: pairwise estimates are chained from the reference robot along
    a best-inlier spanning tree, so robots that do not neighbour the reference get a start too.
 

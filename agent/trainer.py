@@ -48,9 +48,10 @@ class PoseConfig:
     lr_scale: float = 1e-3  # log-scale per step (sim3 only)
     start_step: int = 0  # the pose waits this many steps for the shared field to form
     decay_to: float = 0.1  # pose lr decays geometrically to this fraction at the end
-    lr_factor_from_estimate: float = 1.0  # pose lrs x this when the start came from an estimate
+    lr_factor_from_estimate: float = 0.1  # pose lrs x this when the start came from an estimate
     # (the coarse alignment): Adam moves ~lr per step whatever the gradient, so a start already
-    # within ~0.1 deg is shaken loose by full-size steps against a young field
+    # within ~0.1 deg is shaken loose by full-size steps against a young field. Measured on 3
+    # lego offsets, 250 joint steps: B's camera error 0.0085-0.0135 with 1.0, 0.0071-0.0077 with 0.1
 
 
 @dataclass

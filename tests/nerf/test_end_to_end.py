@@ -101,3 +101,22 @@ def test_baseline_on_a_missing_folder_is_one_line_and_exit_code_2(tmp_path):
     assert len(lines) == 1 and lines[0].startswith("error:") and "absent" in lines[0], res.stderr
     assert "Traceback" not in res.stderr + res.stdout
     assert not (tmp_path / "o" / "metrics.json").exists()
+
+
+def test_a_pose_started_from_an_estimate_learns_with_smaller_steps_and_remembers_it():
+    views = load_views("procedural:views=2,width=8")
+    center, half, _ = estimate_scene_box(views)
+    cfg = small_config(100)
+    cfg.pose.mode = "se3"
+    box = box_from_center(center, half)
+    identity = RobotTrainer(views, cfg, box)
+    estimated = RobotTrainer(views, cfg, box, initial_pose=torch.eye(4))
+    factor = cfg.pose.lr_factor_from_estimate
+    assert 0 < factor < 1
+    for step in (0, 50, 99):
+        assert estimated._pose_lr_factor(step) == pytest.approx(factor * identity._pose_lr_factor(step))
+    identity.pose.set_initial(torch.eye(4))  # what the daemon does after the coarse alignment
+    assert identity._pose_lr_factor(50) == pytest.approx(estimated._pose_lr_factor(50))
+    fresh = RobotTrainer(views, cfg, box)
+    fresh.load_state_dict(estimated.state_dict())  # a restart keeps the smaller steps
+    assert fresh.pose.from_estimate
