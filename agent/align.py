@@ -161,7 +161,7 @@ class Summary:
     @property
     def nbytes(self) -> int:
         """Bytes of the arrays that cross the network (before any compression)."""
-        extra = 0 if self.keypoints is None else self.keypoints.nbytes + self.keyframe_cameras.nbytes
+        extra = self.keypoints.nbytes + self.keyframe_cameras.nbytes if self.has_cameras else 0
         return int(self.descriptors.nbytes + self.points.nbytes + self.keyframe_index.nbytes + extra)
 
     def radius(self) -> float:
@@ -238,13 +238,21 @@ def _rays(c2w: np.ndarray, intr: np.ndarray, xy_cv: np.ndarray) -> tuple[np.ndar
 
 def _project(c2w: np.ndarray, intr: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World points [N, 3] -> (OpenCV pixel coordinates [N, 2], z-depth [N]; <= 0 behind)."""
-    fx, fy, cx, cy = intr
-    cam = (pts - c2w[:3, 3]) @ c2w[:3, :3]  # R^T (x - c)
+    cams = np.concatenate([c2w[:3, :4].reshape(12), intr]).astype(np.float64)  # [16]
+    uv, z = _project_cams(torch.from_numpy(np.tile(cams, (len(pts), 1))), torch.from_numpy(np.asarray(pts, np.float64)))
+    return uv.numpy(), z.numpy()
+
+
+def _project_cams(cams: torch.Tensor, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-point cameras [N, 16] (c2w rows 0-2 + fx fy cx cy), points [N, 3] -> (OpenCV uv [N, 2],
+    z-depth [N]). In torch so that the reprojection refinement can differentiate it."""
+    c2w = cams[:, :12].reshape(-1, 3, 4)
+    cam = torch.einsum("nij,ni->nj", c2w[:, :, :3], pts - c2w[:, :, 3])  # R^T (x - c)
     z = -cam[:, 2]
-    zs = np.where(np.abs(z) > 1e-12, z, 1e-12)
-    u = fx * cam[:, 0] / zs + cx - 0.5
-    v = -fy * cam[:, 1] / zs + cy - 0.5
-    return np.stack([u, v], 1), z
+    zs = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
+    u = cams[:, 12] * cam[:, 0] / zs + cams[:, 14] - 0.5
+    v = -cams[:, 13] * cam[:, 1] / zs + cams[:, 15] - 0.5
+    return torch.stack([u, v], 1), z
 
 
 def triangulate_rays(point_index: np.ndarray, origins: np.ndarray, dirs: np.ndarray, num_points: int
@@ -659,18 +667,6 @@ def estimate_relative(summary_a: Summary, summary_b: Summary, cfg: AlignConfig =
     return AlignmentResult(model, inl, n, rmse, True, reason, null_inl, scale)
 
 
-def _project_torch(cams: torch.Tensor, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-point cameras [N, 16] (c2w rows + fx fy cx cy), points [N, 3] -> (OpenCV uv [N, 2], z [N])."""
-    rot = cams[:, :12].reshape(-1, 3, 4)[:, :, :3]
-    centre = cams[:, :12].reshape(-1, 3, 4)[:, :, 3]
-    cam = torch.einsum("nij,ni->nj", rot, pts - centre)  # R^T (x - c)
-    z = -cam[:, 2]
-    zs = torch.where(z.abs() > 1e-9, z, torch.full_like(z, 1e-9))
-    u = cams[:, 12] * cam[:, 0] / zs + cams[:, 14] - 0.5
-    v = -cams[:, 13] * cam[:, 1] / zs + cams[:, 15] - 0.5
-    return torch.stack([u, v], 1), z
-
-
 def refine_by_reprojection(model: np.ndarray, a: Summary, b: Summary, pairs: np.ndarray,
                            cfg: AlignConfig = AlignConfig()) -> tuple[np.ndarray | None, str]:
     """Refine ``T_a_from_b`` on the symmetric reprojection error of matched points.
@@ -698,12 +694,19 @@ def refine_by_reprojection(model: np.ndarray, a: Summary, b: Summary, pairs: np.
         log_s = xi[6] if cfg.with_scale else torch.zeros((), dtype=f64)
         return t0 @ sim3_from_params(log_s, xi[:3], xi[3:6])
 
-    def residuals(xi: torch.Tensor) -> torch.Tensor:  # [4N]: a's image (u, v), b's image (u, v)
+    def reproject(xi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> (residuals [4N]: a's image (u, v) then b's image (u, v), z-depths [2N])."""
         t = transform(xi)
         t_inv = sim3_inverse(t)
-        uv_a, za = _project_torch(cam_a, xb @ t[:3, :3].T + t[:3, 3])
-        uv_b, zb = _project_torch(cam_b, xa @ t_inv[:3, :3].T + t_inv[:3, 3])
-        return torch.cat([uv_a - ua, uv_b - ub], 0).reshape(-1)
+        uv_a, za = _project_cams(cam_a, xb @ t[:3, :3].T + t[:3, 3])
+        uv_b, zb = _project_cams(cam_b, xa @ t_inv[:3, :3].T + t_inv[:3, 3])
+        return torch.cat([uv_a - ua, uv_b - ub], 0).reshape(-1), torch.cat([za, zb])
+
+    def residuals(xi: torch.Tensor) -> torch.Tensor:
+        return reproject(xi)[0]
+
+    def worse_view(r: torch.Tensor) -> torch.Tensor:  # [4N] -> [N]: the larger of a match's two errors
+        return r.reshape(2, -1, 2).norm(dim=2).max(0).values
 
     def cost(r: torch.Tensor) -> float:
         return float(torch.log1p((r * r) / c2).sum())
@@ -712,7 +715,7 @@ def refine_by_reprojection(model: np.ndarray, a: Summary, b: Summary, pairs: np.
     r = residuals(xi)
     if not torch.isfinite(r).all():
         return None, "reprojection refinement skipped (points at a camera centre)"
-    start_px = float(r.reshape(2, -1, 2).norm(dim=2).max(0).values.median())  # the worse view per match
+    start_px = float(worse_view(r).median())
     lam, best = 1e-3, cost(r)
     for _ in range(cfg.reproj_iters):
         jac = torch.func.jacfwd(residuals)(xi)  # [4N, 7]: 7 forward passes
@@ -732,20 +735,17 @@ def refine_by_reprojection(model: np.ndarray, a: Summary, b: Summary, pairs: np.
             lam *= 4
         if not improved or float(step.abs().max()) < 1e-10:
             break
-    t = transform(xi)
-    with torch.no_grad():
-        t_inv = sim3_inverse(t)
-        _, za = _project_torch(cam_a, xb @ t[:3, :3].T + t[:3, 3])
-        _, zb = _project_torch(cam_b, xa @ t_inv[:3, :3].T + t_inv[:3, 3])
-    per_match = r.reshape(2, -1, 2).norm(dim=2).max(0).values  # [N] the worse of the two views
-    good = int(((per_match < 3 * cfg.reproj_scale_px) & (za > 0) & (zb > 0)).sum())
+    _, z = reproject(xi)
+    per_match = worse_view(r)
+    in_front = (z.reshape(2, -1) > 0).all(0)
+    good = int(((per_match < 3 * cfg.reproj_scale_px) & in_front).sum())
     turn = float(torch.rad2deg(so3_exp(xi[:3]).diagonal().sum().sub(1).div(2).clamp(-1, 1).acos()))
     if good < cfg.min_inliers:
         return None, f"reprojection refinement refused: {good} matches within {3 * cfg.reproj_scale_px:g} px"
     if turn > cfg.reproj_max_change_deg:
         return None, f"reprojection refinement refused: it turned the estimate by {turn:.1f} deg"
     end_px = float(per_match.median())
-    return t.detach().numpy(), (f"refined on reprojection: {good} of {len(pairs)} matches within "
+    return transform(xi).numpy(), (f"refined on reprojection: {good} of {len(pairs)} matches within "
                                 f"{3 * cfg.reproj_scale_px:g} px, median {start_px:.2f} -> {end_px:.2f} px")
 
 
