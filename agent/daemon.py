@@ -310,7 +310,7 @@ class Daemon:
         self,
         robot_id: int,
         views: Views,
-        box_from_shared: Tensor,
+        box_from_shared: Tensor | None,
         swarm: SwarmIdentity,
         training: SwarmTrainingConfig,
         cfg: DaemonConfig,
@@ -321,8 +321,20 @@ class Daemon:
     ) -> None:
         if robot_id not in swarm.topology.ids:
             raise ValueError(f"robot {robot_id} is not in the swarm's robots {list(swarm.topology.ids)}")
+        if box_from_shared is None and cfg.initial_pose != "coarse":
+            raise ValueError("no field box in the scene (robots with images only): the reference derives it from "
+                             "its SfM and shares it with the keyframes, so daemon.initial_pose must be 'coarse'")
         torch.set_num_threads(cfg.threads)
         self.robot_id = robot_id
+        # None: the box lives in the reference's SfM frame. Until a peer tells us, train nothing and
+        # use a provisional box from our own views (the right one if we turn out to be the reference).
+        self._box_pending = box_from_shared is None
+        if box_from_shared is None:
+            from agent.data.split import estimate_scene_box
+            from agent.geometry import box_from_center
+
+            center, half_size, _ = estimate_scene_box(views)
+            box_from_shared = box_from_center(center, half_size)
         self.swarm = swarm
         self.training = training
         self.cfg = cfg
@@ -334,13 +346,7 @@ class Daemon:
         self.setup = build_robot(robot_id, views, box_from_shared, training, initial_pose, is_reference=False)
         self.trainer = self.setup.trainer
         self.spec = model_spec(self.setup)
-        self.expect = codec.Expectation(
-            swarm=swarm.name,
-            spec=self.spec,
-            allowed_senders=frozenset(swarm.topology.ids),
-            max_wire_bytes=2 * self.spec.num_values * 4 + (1 << 20),
-            max_decompressed_bytes=self.spec.num_values * 4 + (1 << 20),
-        )
+        self.expect = self._expectation()
         self.status_expect = codec.Expectation(swarm=swarm.name, allowed_senders=frozenset(swarm.topology.ids))
         self.membership = Membership(swarm.topology, robot_id)
         self.alive = AliveView(robot_id, cfg.alive_expiry_s)
@@ -366,8 +372,34 @@ class Daemon:
         with torch.no_grad():
             self._last_status["pose7"] = pose_summary(self.trainer.pose.matrix())["params7"]
 
+    def _expectation(self) -> codec.Expectation:
+        """What a neighbour's snapshot must look like: our model spec, hence our field box."""
+        return codec.Expectation(
+            swarm=self.swarm.name,
+            spec=self.spec,
+            allowed_senders=frozenset(self.swarm.topology.ids),
+            max_wire_bytes=2 * self.spec.num_values * 4 + (1 << 20),
+            max_decompressed_bytes=self.spec.num_values * 4 + (1 << 20),
+        )
+
+    def _adopt_box(self, box_from_shared: np.ndarray | Tensor, source: str) -> None:
+        """Take the swarm's field box (images-only robots learn it at start) and the model spec it implies."""
+        box = torch.as_tensor(np.asarray(box_from_shared, dtype=np.float64))
+        self.trainer.set_box_from_shared(box)
+        self.spec = model_spec(self.setup)
+        self.expect = self._expectation()
+        self._box_pending = False
+        self._event("field_box", source=source, box_from_shared=[float(x) for x in box.flatten()])
+        self.log(f"[robot {self.robot_id}] field box from {source}")
+
+    def _box_to_share(self) -> np.ndarray:
+        """Our box as it goes on the wire (float64 of our float32 box: every robot ends bit-identical)."""
+        return self.trainer.box_from_shared.detach().cpu().double().numpy()
+
     # ------------------------------------------------------------------ network callbacks
     def _on_theta(self, key: str, data: bytes) -> None:
+        if self._box_pending:
+            return  # our spec is provisional until the box is known; the barrier pulls it later
         try:
             parsed = self.keys.parse(key)
             if parsed.receiver != self.robot_id:
@@ -644,17 +676,27 @@ class Daemon:
         msg = KeyframeSummary(swarm=self.swarm.name, sender=self.robot_id, round=0, epoch=self.membership.epoch,
                               descriptors=own.descriptors, points=own.points, keyframe_index=own.keyframe_index,
                               image_bytes=image_bytes, keypoints=own.keypoints, keyframe_cameras=own.keyframe_cameras)
-        data = codec.encode(msg)
-        self.net.set_keyframes(data)
-        self._event("keyframes", bytes=len(data), image_bytes=image_bytes, points=len(own),
+        is_reference = self.membership.reference == self.robot_id
+        if is_reference and self._box_pending:  # our own frame is the shared frame: our box is the box
+            self._adopt_box(self._box_to_share(), "our own views (we are the reference)")
+
+        def serve_summary() -> int:
+            msg.box_from_shared = None if self._box_pending else self._box_to_share()
+            data = codec.encode(msg)
+            self.net.set_keyframes(data)
+            return len(data)
+
+        size = serve_summary()
+        self._event("keyframes", bytes=size, image_bytes=image_bytes, points=len(own),
                     seconds=time.monotonic() - t0)
-        self.log(f"[robot {self.robot_id}] keyframe summary: {len(own)} points, {len(data) / 1e3:.0f} kB "
+        self.log(f"[robot {self.robot_id}] keyframe summary: {len(own)} points, {size / 1e3:.0f} kB "
                  f"(its images: {image_bytes / 1e6:.1f} MB)")
-        if self.membership.reference == self.robot_id:
+        if is_reference:
             self._set_status(alignment="reference")
             return
 
         summaries: dict[int, Summary] = {}
+        boxes: dict[int, np.ndarray | None] = {}  # the field box each aligned neighbour sent
         tried: dict[int, str] = {}
         deadline = time.monotonic() + self.cfg.align_timeout_s
         while time.monotonic() < deadline and not self._stop.is_set():
@@ -663,8 +705,12 @@ class Daemon:
             best = None
             for j in sorted(self.membership.live_neighbours):
                 st = statuses.get(j)
-                if st is None or not (st.alignment == "reference" or st.alignment.startswith("coarse")):
+                if st is None or st.alignment == "pending":
                     continue  # j does not know where it is yet
+                knows_pose = st.alignment == "reference" or st.alignment.startswith("coarse")
+                if not knows_pose and not self._box_pending:
+                    tried[j] = "it found no pose either"
+                    continue
                 if j not in summaries:
                     raw = self.net.query(self.keys.keyframes(j), timeout=self.cfg.join_timeout_s)
                     if raw is None:
@@ -673,9 +719,16 @@ class Daemon:
                         km = codec.decode(raw, self.status_expect, kind="keyframes", key=self.keys.parse(self.keys.keyframes(j)))
                         summaries[j] = Summary(km.descriptors, km.points, km.keyframe_index, acfg.descriptor_scale,
                                                keypoints=km.keypoints, keyframe_cameras=km.keyframe_cameras)
+                        boxes[j] = km.box_from_shared
                     except (Rejected, ValueError) as e:
                         self._reject(getattr(e, "reason", "bad_field"), f"keyframes of robot {j}: {e}")
                         continue
+                if not knows_pose:  # but its box (from someone who had one) still makes our model agree
+                    tried[j] = "it found no pose either"
+                    continue
+                if self._box_pending and boxes.get(j) is None:
+                    tried[j] = "it sent no field box"
+                    continue
                 res = estimate_relative(summaries[j], own, acfg)
                 tried[j] = res.reason
                 if not res.success:
@@ -689,6 +742,9 @@ class Daemon:
                     best = (j, res.inliers, candidate)
             if best is not None:
                 j, inliers, T = best
+                if self._box_pending:
+                    self._adopt_box(boxes[j], f"robot {j}")
+                    serve_summary()  # with the box: robots aligning through us need it too
                 self.trainer.pose.set_initial(T.float())
                 with torch.no_grad():
                     self._set_status(alignment=f"coarse via {j}: {inliers} inliers",
@@ -702,6 +758,16 @@ class Daemon:
                 break  # every neighbour knows its pose and none matched: no overlap
             self._stop.wait(0.5)
         reason = "; ".join(f"{j}: {r}" for j, r in sorted(tried.items())) or "no aligned neighbour answered"
+        if self._box_pending:
+            sent = [j for j, b in sorted(boxes.items()) if b is not None]
+            if sent:  # no pose, but the swarm's box: at least our model agrees with theirs
+                self._adopt_box(boxes[sent[0]], f"robot {sent[0]} (without a pose)")
+                serve_summary()
+            else:
+                self._box_pending = False
+                self._event("field_box", source="own estimate (no neighbour sent one)")
+                self.log(f"[robot {self.robot_id}] no neighbour sent the field box: keeping our own estimate; "
+                         "neighbours with another box will refuse our snapshots (bad_signature)")
         self._set_status(alignment="identity (coarse step found nothing)")
         self._event("alignment_failed", reason=reason)
         self.log(f"[robot {self.robot_id}] coarse alignment found nothing ({reason}); starting from the identity")
@@ -730,6 +796,8 @@ class Daemon:
             return False
         try:
             state = torch.load(path, map_location=self.trainer.device, weights_only=False)
+            if self._box_pending and "box_from_shared" in state:  # learnt before the restart
+                self._adopt_box(state["box_from_shared"].double().cpu().numpy(), "our checkpoint")
             if state.get("signature") != self.spec.signature():
                 raise ValueError("the model in the checkpoint differs from the configured one")
             self.trainer.load_state_dict(state["trainer"])
@@ -901,7 +969,7 @@ def load_for_eval(run_dir: str | Path, data_dir: str | Path, round: int | None =
     run_dir = Path(run_dir)
     state = torch.load(run_dir / CHECKPOINT, map_location="cpu", weights_only=False)
     training: SwarmTrainingConfig = state["training"]
-    views = load_views(data_dir, sfm_cache_dir=run_dir / SFM_CACHE)  # images-only: the SfM of the run
+    views = load_views(data_dir, width=training.image_width, sfm_cache_dir=run_dir / SFM_CACHE)  # images-only: the run's SfM
     setup = build_robot(int(state["robot_id"]), views, state["box_from_shared"], training)
     trainer = setup.trainer
     trainer.load_state_dict(state["trainer"])

@@ -29,6 +29,9 @@ class SwarmTrainingConfig:
     steps_per_round: int = 100
     seed: int = 0
     holdout_every: int = 10  # every k-th own view is held out for the robot's log PSNR; 0 = none
+    # Train on the robot's images downscaled to this width (None: as they are). A folder of
+    # images only still gets its SfM from the full-size images, which need the detail.
+    image_width: int | None = None
     consensus: ConsensusConfig = field(default_factory=ConsensusConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
 
@@ -37,6 +40,8 @@ class SwarmTrainingConfig:
             raise ValueError("rounds and steps_per_round must be >= 1")
         if self.holdout_every < 0:
             raise ValueError("holdout_every must be >= 0")
+        if self.image_width is not None and self.image_width < 8:
+            raise ValueError(f"image_width must be >= 8 pixels, got {self.image_width}")
 
     @property
     def total_steps(self) -> int:

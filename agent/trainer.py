@@ -144,6 +144,16 @@ class RelativePose(nn.Module):
         self.set_trainable(False)
 
     @torch.no_grad()
+    def set_box(self, box_from_shared: Tensor) -> None:
+        """Adopt the swarm's field box (learnt at start by images-only robots); T is unchanged."""
+        T = self.matrix()
+        self.box.copy_(box_from_shared.to(self.box))
+        self.box_inv.copy_(sim3_inverse(box_from_shared.double()).to(self.box_inv))
+        self.base.copy_(T)
+        for p in (self.phi, self.translation, self.log_scale):
+            p.zero_()
+
+    @torch.no_grad()
     def set_initial(self, transform: Tensor) -> None:
         """Start from another estimate (e.g. the coarse keyframe alignment) with a zero correction."""
         self.base.copy_(transform.to(self.base))
@@ -223,6 +233,14 @@ class RobotTrainer:
         # high (a young, translucent field) the no-grad visibility pass prunes little and is skipped.
         self.visible_fraction = 1.0
         self.samples_per_ray = 32.0  # running mean, drives the dynamic batch
+
+    def set_box_from_shared(self, box_from_shared: Tensor) -> None:
+        """Adopt the swarm's field box before training: robots with images only learn it from the
+        reference (it lives in the reference's SfM frame), after this trainer was built."""
+        if self.step != 0:
+            raise RuntimeError("the field box can change only before the first step")
+        self.box_from_shared = box_from_shared.to(self.device).float()
+        self.pose.set_box(box_from_shared)
 
     # --- parameters exchanged with neighbours ---------------------------------------------
     def theta(self) -> dict[str, Tensor]:

@@ -45,7 +45,11 @@ def up(
         raise UserError(f"--id {robot_id} is not one of the swarm's robots {cfg.swarm.robots} ({swarm_path})")
     scene = read_scene(base_dir / cfg.swarm.scene)
     run_dir = run_dir or Path("runs") / cfg.swarm.name / f"robot{robot_id}"
-    views = load_views(data, sfm_cache_dir=run_dir / SFM_CACHE)  # a folder of images only: SfM, cached
+    if scene.box_from_shared is None and cfg.daemon.initial_pose != "coarse":
+        raise UserError(f"{base_dir / cfg.swarm.scene} has no field box (robots with images only): set "
+                        "daemon.initial_pose = 'coarse' so that the reference shares the box of its SfM frame")
+    # a folder of images only: SfM on the full-size images (cached), then downscaled to the training width
+    views = load_views(data, width=cfg.training.image_width, sfm_cache_dir=run_dir / SFM_CACHE)
     transport_cfg = cfg.transport_for(robot_id, listen, connect)
 
     try:

@@ -68,6 +68,8 @@ from protocol.messages import (
     ThetaSnapshot,
     check_status_body,
     is_int,
+    is_number,
+    similarity_problem,
     status_body,
 )
 
@@ -300,9 +302,14 @@ def _encode_keyframes(msg: KeyframeSummary, compression: str, level: int) -> byt
         if k.size and k.max() >= cams.shape[0]:
             raise ValueError("keyframe_index beyond the keyframe cameras")
         arrays += [("keypoints", uv, _ARRAY_DTYPES["float32"]), ("keyframe_cameras", cams, _ARRAY_DTYPES["float32"])]
+    meta: dict[str, Any] = {"image_bytes": msg.image_bytes}
+    if msg.box_from_shared is not None:
+        problem = similarity_problem(msg.box_from_shared)
+        if problem:
+            raise ValueError(f"box_from_shared: {problem}")
+        meta["box_from_shared"] = [float(x) for x in np.asarray(msg.box_from_shared, dtype=np.float64).flatten()]
     raw, table = _pack_arrays(arrays)
-    return _seal(KIND_KEYFRAMES, msg, "", "float32", compression, level, raw, table,
-                 {"image_bytes": msg.image_bytes})
+    return _seal(KIND_KEYFRAMES, msg, "", "float32", compression, level, raw, table, meta)
 
 
 # =========================================================================== decode
@@ -462,8 +469,15 @@ def _parse(data: Any, expect: Expectation, kind: str | None, key: ParsedKey | No
     if not isinstance(meta, dict):
         raise Rejected("bad_header", "meta is not a map")
     if msg_kind == KIND_KEYFRAMES:
-        if set(meta) != {"image_bytes"} or not is_int(meta["image_bytes"]) or meta["image_bytes"] < 0:
-            raise Rejected("bad_field", "keyframes meta must be {image_bytes: non-negative int}")
+        if set(meta) - {"box_from_shared"} != {"image_bytes"} or not is_int(meta["image_bytes"]) or meta["image_bytes"] < 0:
+            raise Rejected("bad_field", "keyframes meta must be {image_bytes: non-negative int[, box_from_shared]}")
+        if "box_from_shared" in meta:
+            box = meta["box_from_shared"]
+            if not isinstance(box, list) or len(box) != 16 or not all(is_number(x) for x in box):
+                raise Rejected("bad_field", "box_from_shared must be 16 numbers (a 4x4 matrix, row-major)")
+            problem = similarity_problem(np.array(box, dtype=np.float64).reshape(4, 4))
+            if problem:
+                raise Rejected("bad_field", f"box_from_shared: {problem}")
     elif meta:
         raise Rejected("bad_field", f"{msg_kind} messages carry no meta")
 
@@ -608,4 +622,10 @@ def _decode_body(parsed: _Parsed, expect: Expectation) -> Message:
     return KeyframeSummary(swarm=h.swarm, sender=h.sender, round=h.round, epoch=h.epoch,
                            descriptors=arrays["descriptors"], points=arrays["points"],
                            keyframe_index=index, image_bytes=parsed.meta["image_bytes"],
-                           keypoints=arrays.get("keypoints"), keyframe_cameras=cams, header=h)
+                           keypoints=arrays.get("keypoints"), keyframe_cameras=cams, header=h,
+                           box_from_shared=_meta_box(parsed.meta))
+
+
+def _meta_box(meta: dict[str, Any]) -> np.ndarray | None:
+    box = meta.get("box_from_shared")
+    return None if box is None else np.array(box, dtype=np.float64).reshape(4, 4)

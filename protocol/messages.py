@@ -259,6 +259,9 @@ class KeyframeSummary:
     Optional, together: ``keypoints`` [P, 2] float32, each feature's pixel position in its
     keyframe, and ``keyframe_cameras`` [K, 16] float32, each keyframe's camera-to-world rows 0-2
     and fx, fy, cx, cy; with them a receiver can measure matches in pixels.
+    ``box_from_shared`` [4, 4] float64, optional: the field box the sender uses (a similarity
+    from the shared frame onto [-1, 1]^3). Robots with images only cannot know it in advance: the
+    reference derives it from its own SfM and it travels outward with the keyframes.
     """
 
     swarm: str
@@ -271,6 +274,7 @@ class KeyframeSummary:
     image_bytes: int = 0
     keypoints: np.ndarray | None = None
     keyframe_cameras: np.ndarray | None = None
+    box_from_shared: np.ndarray | None = None
     header: Header | None = None
 
     kind = KIND_KEYFRAMES
@@ -282,6 +286,31 @@ MESSAGE_TYPES: dict[str, type] = {KIND_THETA: ThetaSnapshot, KIND_STATUS: Status
 
 
 # --------------------------------------------------------------------------- field checks
+
+
+def similarity_problem(m: Any) -> str | None:
+    """Why ``m`` is not a usable 4x4 similarity (``s R x + t``, s > 0), or None if it is.
+
+    A field box from a peer goes straight into every ray's coordinates: a shear, a reflection or
+    a degenerate scale would corrupt the model silently, so it is refused here.
+    """
+    try:
+        a = np.asarray(m, dtype=np.float64)
+    except (TypeError, ValueError):
+        return "not a numeric matrix"
+    if a.shape != (4, 4):
+        return f"shape {list(a.shape)[:4]}, want [4, 4]"
+    if not np.isfinite(a).all():
+        return "non-finite entries"
+    if not np.array_equal(a[3], [0.0, 0.0, 0.0, 1.0]):
+        return "last row must be 0 0 0 1"
+    sr = a[:3, :3]
+    scale = float(np.cbrt(np.linalg.det(sr)))
+    if not 1e-6 < scale < 1e6:
+        return f"scale {scale:.3g} outside (1e-6, 1e6), or a reflection"
+    if np.abs(sr.T @ sr / scale**2 - np.eye(3)).max() > 1e-4:
+        return "not a scaled rotation"
+    return None
 
 
 def is_int(x: Any) -> bool:

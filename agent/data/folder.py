@@ -113,7 +113,10 @@ def _read_json(path: Path, what: str) -> dict:
 class SceneInfo:
     """What every robot of a split may know: the field box in the shared frame and who defines it."""
 
-    box_from_shared: Tensor  # [4, 4] float64 similarity: shared frame g -> box coordinates [-1, 1]^3
+    # [4, 4] float64 similarity: shared frame g -> box coordinates [-1, 1]^3. None when the split
+    # cannot know it: robots with images only, whose shared frame is the reference's own SfM frame
+    # (the reference derives the box from its SfM at start and shares it with the keyframes).
+    box_from_shared: Tensor | None
     reference_id: int
 
 
@@ -124,12 +127,13 @@ def read_scene(path: str | Path) -> SceneInfo:
         path = path / "scene.json" if (path / "scene.json").is_file() else path.parent / "scene.json"
     data = _read_json(path, "scene.json")
     try:
-        box = torch.tensor(data["box_from_shared"], dtype=torch.float64)
+        raw = data["box_from_shared"]
+        box = None if raw is None else torch.tensor(raw, dtype=torch.float64)
         ref = int(data["reference_id"])
     except (KeyError, TypeError, ValueError) as e:
-        raise DataError(f"{path}: expected 'box_from_shared' (4x4) and 'reference_id': {e}") from None
-    if box.shape != (4, 4) or not torch.isfinite(box).all():
-        raise DataError(f"{path}: box_from_shared must be a finite 4x4 matrix")
+        raise DataError(f"{path}: expected 'box_from_shared' (4x4, or null) and 'reference_id': {e}") from None
+    if box is not None and (box.shape != (4, 4) or not torch.isfinite(box).all()):
+        raise DataError(f"{path}: box_from_shared must be a finite 4x4 matrix (or null)")
     return SceneInfo(box, ref)
 
 

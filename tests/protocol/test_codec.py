@@ -320,3 +320,29 @@ def test_keyframe_summary_with_cameras_round_trip_and_refusals():
     with pytest.raises(Rejected) as exc:
         decode(encode(msg), expectation(max_keyframes=4), kind="keyframes")
     assert exc.value.reason == "too_large"
+
+
+def test_keyframe_summary_carries_a_field_box_and_refuses_a_bad_one():
+    box = np.diag([0.5, 0.5, 0.5, 1.0])
+    box[:3, 3] = [0.1, -0.2, 0.3]
+    msg = _keyframes_with_cameras()
+    msg.box_from_shared = box
+    got = decode(encode(msg), expectation(), kind="keyframes")
+    np.testing.assert_array_equal(got.box_from_shared, box)  # float64 on the wire: bit for bit
+    assert decode(encode(_keyframes()), expectation(), kind="keyframes").box_from_shared is None  # optional
+
+    sheared = box.copy()
+    sheared[0, 1] = 0.2
+    mirrored = box @ np.diag([-1.0, 1.0, 1.0, 1.0])
+    with pytest.raises(ValueError, match="box_from_shared"):
+        encode(KeyframeSummary(**{**msg.__dict__, "box_from_shared": sheared}))
+
+    # A hostile sender writes the meta itself: shear, reflection, NaN, wrong length, strings.
+    cases = [sheared.flatten().tolist(), mirrored.flatten().tolist(),
+             [float("nan")] + box.flatten().tolist()[1:], box.flatten().tolist()[:12], ["1"] * 16,
+             (box * 0).flatten().tolist()]
+    for bad in cases:
+        frame = reframe(encode(msg), meta={"image_bytes": msg.image_bytes, "box_from_shared": bad})
+        with pytest.raises(Rejected) as exc:
+            decode(frame, expectation(), kind="keyframes")
+        assert exc.value.reason == "bad_field" and "box_from_shared" in str(exc.value), bad

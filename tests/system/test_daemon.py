@@ -6,6 +6,7 @@ waiting on the network versus computing, failover latency.
 
 from __future__ import annotations
 
+import json
 import statistics
 import subprocess
 import sys
@@ -201,3 +202,41 @@ def test_coarse_alignment_over_zenoh_starts_near_the_true_relative_pose(tmp_path
           f"{identity_err['rotation_deg']:.1f} deg / {identity_err['translation']:.2f}); {tel['alignment']}")
     assert identity_err["rotation_deg"] > 20  # the test means something: the frames really differ
     assert err["rotation_deg"] < 3.0 and err["translation"] < 0.1
+
+
+def test_field_box_unknown_to_the_split_comes_from_the_reference_through_the_line(tmp_path):
+    """Robots with images only cannot be told the field box (it lives in the reference's SfM frame).
+
+    The reference derives it from its own views; it travels with the keyframe summaries, relayed by
+    robot 2 to robot 3, which is not the reference's neighbour. Every robot must end with the same box
+    bit for bit (else C-ADMM would mix parameters of different fields: bad_signature everywhere).
+    """
+    from agent.daemon import CHECKPOINT
+    from agent.data.loaders import load_views
+    from agent.data.split import estimate_scene_box
+    from agent.geometry import box_from_center
+
+    swarm = make_swarm(tmp_path, robots=3, topology="line", frame="random", views=90, width=64, overlap=0.4,
+                       training={"rounds": 2, "steps_per_round": 2, "train": {"pose": {"mode": "se3"}}},
+                       daemon={"initial_pose": "coarse"})
+    scene = json.loads((swarm.root / "scene.json").read_text())
+    given = torch.tensor(scene["box_from_shared"], dtype=torch.float64)
+    scene["box_from_shared"] = None  # as the split writes it for robots with images only
+    (swarm.root / "scene.json").write_text(json.dumps(scene))
+    try:
+        swarm.start_all()
+        swarm.wait_all()
+    finally:
+        swarm.stop()
+    sources = {i: [e["source"] for e in swarm.events(i) if e["event"] == "field_box"] for i in (1, 2, 3)}
+    assert sources == {1: ["our own views (we are the reference)"], 2: ["robot 1"], 3: ["robot 2"]}, sources
+    boxes = {i: torch.load(swarm.run_dir(i) / CHECKPOINT, weights_only=False)["box_from_shared"] for i in (1, 2, 3)}
+    c, h, _ = estimate_scene_box(load_views(swarm.root / "robot1"))
+    expected = box_from_center(c, h).float()
+    assert all(torch.equal(b.float(), expected) for b in boxes.values()), boxes
+    assert not torch.allclose(expected.double(), given, atol=1e-3)  # robot 1's own box, not the split's
+    for i in (1, 2, 3):
+        tel = swarm.telemetry(i)
+        assert len(tel) == 2 and swarm.done(i)["rejected"] == {}, (i, swarm.done(i), swarm.log_text(i))
+        line = {1: {2}, 2: {1, 3}, 3: {2}}
+        assert all(set(r["heard"]) == line[i] for r in tel), (i, tel)
