@@ -28,6 +28,12 @@ keeps the world frame; every other robot is offset by a fixed rotation and trans
 ``world`` (identity: known poses), ``random`` (seeded rotation, translation and optional scale).
 Poses become ``transform_c2w(sim3_inverse(T), c2w)``; depths are divided by the scale.
 The shared frame g of the swarm is the local frame of the reference robot (the lowest id).
+
+Images only (``images_only``): robot folders get no poses, so each robot's local frame will be
+its own SfM's (arbitrary rotation, translation and scale), unknown at split time. ``scene.json``
+then has no box (the reference derives it from its SfM), and ``truth.json`` gives, instead of
+``T_world_from_local``, the true world cameras of each robot's views (``cameras_world``), to which
+the evaluation aligns the robot's SfM cameras (``agent.evaluation.calibrate_frame``).
 """
 
 from __future__ import annotations
@@ -119,6 +125,14 @@ class RobotSplit:
     sector_deg: tuple[float, float]  # widened sector [start, end) in degrees
     overlap: float  # achieved: fraction of this robot's views also held by another robot
     depth_affine: Tensor | None = None  # [M_i, 2] (a_m, b_m): prior = a_m * true_local_depth + b_m
+
+    @property
+    def cameras_world(self) -> Tensor:
+        """The true world camera-to-world of this robot's views.  -> [M_i, 4, 4] float64.
+
+        For robots with images only, the evaluation aligns each robot's own SfM cameras to these.
+        """
+        return transform_c2w(self.T_world_from_local, self.views.c2w.to(torch.float64))
 
 
 @dataclass
@@ -478,12 +492,22 @@ def write_split(result: SplitResult, out: str | Path, *, overwrite: bool = False
         "scene_box_world": {"center": result.box_center_world.tolist(), "half_size": result.box_half_size},
         "robots": {},
     }
+    if cfg.images_only:
+        # A robot's local frame will be its own SfM's, unknown here: no T_world_from_local, but the
+        # true world cameras of its views, to which the evaluation aligns its SfM cameras.
+        truth["images_only"] = True
+        truth["shared_frame"] = (f"the SfM frame of robot {result.reference_id}, made at run time; the evaluation "
+                                 "calibrates every robot's SfM frame on cameras_world")
     for rid, rob in result.robots.items():
-        entry = {
-            "T_world_from_local": matrix_to_list(rob.T_world_from_local),
-            "T_shared_from_local": matrix_to_list(t_shared[rid]),
-            "scale": float(sim3_decompose(rob.T_world_from_local)[0]),
-        }
+        entry: dict = {}
+        if cfg.images_only:
+            entry["cameras_world"] = {n: matrix_to_list(m) for n, m in zip(rob.views.names, rob.cameras_world)}
+        else:
+            entry = {
+                "T_world_from_local": matrix_to_list(rob.T_world_from_local),
+                "T_shared_from_local": matrix_to_list(t_shared[rid]),
+                "scale": float(sim3_decompose(rob.T_world_from_local)[0]),
+            }
         if rob.depth_affine is not None:
             entry["depth_affine"] = {
                 "definition": "prior = a * true_local_z_depth + b (where the true depth is known)",
@@ -519,15 +543,24 @@ def write_split(result: SplitResult, out: str | Path, *, overwrite: bool = False
             "notes": result.notes,
         },
     )
-    write_json(
-        out / "scene.json",
-        {
+    if cfg.images_only:
+        scene = {
+            "reference_id": result.reference_id,
+            "box_from_shared": None,
+            "description": (
+                "The robots have images only, so the shared frame g is the reference robot's own SfM frame, "
+                "unknown when the data was split: the reference derives box_from_shared (g -> the normalised "
+                "field box [-1, 1]^3) from its own SfM at start and shares it with its peers."
+            ),
+        }
+    else:
+        scene = {
             "reference_id": result.reference_id,
             "box_from_shared": matrix_to_list(result.box_from_shared),
             "description": (
                 "box_from_shared maps the shared frame g (the local frame of the reference robot) into the "
                 "normalised field box [-1, 1]^3; robot i maps its local points with box_from_shared @ T_i."
             ),
-        },
-    )
+        }
+    write_json(out / "scene.json", scene)
     return out

@@ -12,6 +12,12 @@ with the same steps as each robot (``rounds * steps_per_round`` unless ``baselin
 the centralised model on all robots' views with true poses, and each robot alone on its own
 views with its pose fixed to the truth (an upper bound for "alone": it gets the frame for free).
 
+Robots with images only (``split.images_only``) train in their own SfM frames: before anything
+is scored, each robot's frame is fitted to the world on its cameras
+(``agent.evaluation.calibrate_frame``), and the fit's residual is reported with the results,
+since it bounds how exactly they can be measured. "Alone" then gets the calibrated frame and
+the split's field box for free.
+
 Writes ``report.json``, ``report.md``, ``convergence.png`` and ``renders.png`` into the run folder.
 """
 
@@ -92,6 +98,10 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
 
     telemetry = {i: read_jsonl(out / "robots" / str(i) / "telemetry.jsonl") for i in ids}
     snaps = {i: _snapshot_rounds(out / "robots" / str(i)) for i in ids}
+    notes: list[str] = []
+    if evalset.needs_calibration:
+        notes += _calibrate_frames(evalset, out, snaps, echo)
+    evaluable = {i for i in ids if evalset.has_frame(i)} if evalset.has_frame(evalset.reference_id) else set()
     all_rounds = sorted({k for ks in snaps.values() for k in ks})
     last = all_rounds[-1] if all_rounds else None
     chosen = [k for k in all_rounds if k % spec.report.eval_every == 0 or k == last]
@@ -102,7 +112,7 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
     for k in chosen:
         thetas = {}
         for i in ids:
-            if k not in snaps[i]:
+            if k not in snaps[i] or i not in evaluable:
                 continue
             trainer = load_for_eval(out / "robots" / str(i), data_dir / f"robot{i}", round=k)
             ev = evaluate_robot(trainer, evalset, i, with_ssim=spec.report.ssim)
@@ -157,6 +167,8 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
             "starts": run.get("robots", {}).get(str(i), {}).get("starts"),
             "state": run.get("robots", {}).get(str(i), {}).get("state"),
         }
+        if i in evalset.calibration:
+            robots[str(i)]["calibration"] = evalset.calibration[i].summary()
 
     faults = [e for e in run.get("events", []) if e.get("event") == "fault"]
     report: dict[str, Any] = {
@@ -172,7 +184,7 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
         "links_bytes": links,
         "faults": faults,
         "heldout_views": len(evalset.views),
-        "notes": [],
+        "notes": notes,
     }
     if spec.split.depth_prior == "scaled":
         report["notes"].append("depth prior: the true depth with a random per-image scale/shift (synthetic)")
@@ -195,6 +207,35 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
 # --------------------------------------------------------------------------------------------
 # Points of comparison
 # --------------------------------------------------------------------------------------------
+
+
+def _calibrate_frames(evalset, out: Path, snaps: dict[int, list[int]], echo) -> list[str]:
+    """Fit every images-only robot's SfM frame to the world; returns notes on those that could not be.
+
+    The cameras are those of the robot's trainer as ``load_for_eval`` rebuilds it, i.e. its SfM
+    frame exactly as it trained in, whatever the daemon did to the SfM's output.
+    """
+    from agent.daemon import load_for_eval
+    from agent.data.views import DataError
+
+    notes = ["images only: each robot's local frame is its own SfM; it is aligned to the world by a Sim(3) fit "
+             "of its camera centres to the true ones before scoring (see 'Evaluation frames')"]
+    for i in sorted(evalset.cameras_world):
+        if not snaps.get(i):
+            notes.append(f"robot {i}: no snapshot, so no SfM frame to calibrate: not evaluated")
+            continue
+        try:
+            trainer = load_for_eval(out / "robots" / str(i), out / "data" / f"robot{i}")
+            cal = evalset.calibrate(i, trainer.views)
+        except (DataError, OSError) as e:
+            notes.append(f"robot {i}: its SfM frame could not be calibrated ({e}): not evaluated")
+            continue
+        echo(f"[report] robot {i}: SfM frame calibrated on {cal.inliers}/{cal.matched} cameras, centre error "
+             f"{cal.centre_error_median:.4f}, rotation error {cal.rotation_error_median_deg:.3f} deg (medians)")
+    if not evalset.has_frame(evalset.reference_id):
+        notes.append(f"the reference (robot {evalset.reference_id}) has no calibrated frame, so the shared frame is "
+                     "unknown: no robot could be evaluated")
+    return notes
 
 
 def _baselines(spec: ScenarioSpec, out: Path, evalset, echo) -> dict:
@@ -227,7 +268,13 @@ def _baselines(spec: ScenarioSpec, out: Path, evalset, echo) -> dict:
                                  "seconds": time.monotonic() - t, "views": len(scores["psnr"])}
         result["_trainer"] = run.trainer
         if futures:
-            result["alone"] = {str(i): f.result() for i, f in futures.items()}
+            result["alone"] = {}
+            for i, f in futures.items():
+                try:
+                    result["alone"][str(i)] = f.result()
+                except Exception as e:  # a baseline that fails must not take the swarm's report with it
+                    echo(f"[report] baseline: robot {i} alone failed: {type(e).__name__}: {e}")
+                    result["alone"][str(i)] = {"error": f"{type(e).__name__}: {e}"}
     finally:
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
@@ -235,7 +282,11 @@ def _baselines(spec: ScenarioSpec, out: Path, evalset, echo) -> dict:
 
 
 def _train_alone(spec_data: dict, out: str, robot: int, steps: int) -> dict:
-    """One robot alone on its own views, pose fixed to the truth (runs in a worker process)."""
+    """One robot alone on its own views, pose fixed to the truth (runs in a worker process).
+
+    Images only: the robot's SfM frame (and the reference's, which defines the shared frame) is
+    calibrated here on the views as this process loads them, so the truth fits those views.
+    """
     import torch
 
     from agent.data.folder import read_scene
@@ -243,16 +294,27 @@ def _train_alone(spec_data: dict, out: str, robot: int, steps: int) -> dict:
     from agent.evaluation import EvalSet, evaluate_robot
     from agent.swarm import build_robot
 
-    data = dict(spec_data)
-    data.pop("path", None)
-    spec = from_dict(ScenarioSpec, data)
+    fields = dict(spec_data)
+    fields.pop("path", None)
+    spec = from_dict(ScenarioSpec, fields)
     torch.set_num_threads(1)
     t = time.monotonic()
-    evalset = EvalSet.from_dir(Path(out) / "data")
-    scene = read_scene(Path(out) / "data")
-    views = load_views(Path(out) / "data" / f"robot{robot}")
+    data = Path(out) / "data"
+    evalset = EvalSet.from_dir(data)
+    scene = read_scene(data)
+
+    def own_views(i: int):  # as the daemon loads them: training width, the run's SfM cache
+        return load_views(data / f"robot{i}", width=spec.training.image_width,
+                          sfm_cache_dir=Path(out) / "robots" / str(i) / "sfm")
+
+    views = own_views(robot)
+    if evalset.needs_calibration:
+        evalset.calibrate(robot, views)
+        if robot != evalset.reference_id:
+            evalset.calibrate(evalset.reference_id, own_views(evalset.reference_id))
+    box = scene.box_from_shared if scene.box_from_shared is not None else evalset.box_from_shared
     tcfg = dataclasses.replace(spec.training, rounds=1, steps_per_round=steps)
-    setup = build_robot(robot, views, scene.box_from_shared, tcfg,
+    setup = build_robot(robot, views, box, tcfg,
                         initial_pose=evalset.T_shared_from_local(robot).float(),
                         is_reference=True)  # is_reference: the pose stays frozen at the truth
     setup.trainer.train(steps)
@@ -388,9 +450,12 @@ def _markdown(report: dict, spec: ScenarioSpec, ids: list[int]) -> str:
     lines += [
         f"- outcome: **{'completed' if report['ok'] else 'FAILED'}** ({report['reason']}), "
         f"{_f(report['seconds_run'], '.0f')} s, mode `{report['mode']}`",
-        f"- data: `{spec.dataset}` at {sp.get('resolution')}, {spec.robots} robots, mean overlap "
-        f"{_f(100 * sp['mean_overlap'] if sp.get('mean_overlap') is not None else None, '.0f')}%, frames `{spec.split.frame}`, "
-        f"topology `{spec.topology.kind}` ({', '.join(f'{a}-{b}' for a, b in spec.links)})",
+        f"- data: `{spec.dataset}` at {sp.get('resolution')}"
+        + (f" (robots' images at {sp['robot_resolution']})" if sp.get("robot_resolution") not in (None, sp.get("resolution")) else "")
+        + f", {spec.robots} robots, mean overlap "
+        f"{_f(100 * sp['mean_overlap'] if sp.get('mean_overlap') is not None else None, '.0f')}%, "
+        + ("images only (each robot's frame is its own SfM's), " if spec.split.images_only else f"frames `{spec.split.frame}`, ")
+        + f"topology `{spec.topology.kind}` ({', '.join(f'{a}-{b}' for a, b in spec.links)})",
         f"- training: {spec.training.rounds} rounds x {spec.training.steps_per_round} steps, rho0 "
         f"{spec.training.consensus.rho0:g}, pose `{spec.training.train.pose.mode}`",
         f"- evaluation: {report['heldout_views']} held-out views of the whole scene (every "
@@ -412,7 +477,23 @@ def _markdown(report: dict, spec: ScenarioSpec, ids: list[int]) -> str:
             f"{_f(r['bytes_out_total'] / 1e6, '.1f')} | {r['starts']} |"
         )
     lines += ["", f"Mean PSNR {_f(s['mean_psnr'])} dB (others-only {_f(s['mean_psnr_others_only'])} dB); "
-              f"worst pose error {_f(s['max_rotation_error_deg'])} deg / {_f(s['max_translation_error'], '.3f')}.", ""]
+              f"worst pose error {_f(s['max_rotation_error_deg'])} deg / {_f(s['max_translation_error'], '.3f')} (scene units).", ""]
+    cals = {i: report["robots"][str(i)].get("calibration") for i in ids}
+    if any(cals.values()):
+        lines += ["## Evaluation frames (images only)", "",
+                  "Each robot's SfM frame is aligned to the world by a Sim(3) fit of its camera centres to the true ones "
+                  "(the standard evaluation of pose-free NeRF). The residuals bound how exactly the scores above can "
+                  "be measured: the held-out cameras are placed through the reference's fit, each pose error through two fits.",
+                  "",
+                  "| robot | cameras matched | used by the fit | centre error, median (scene units) | rotation error, median (deg) | scene units per SfM unit |",
+                  "|---|---|---|---|---|---|"]
+        for i, c in cals.items():
+            if c:
+                lines.append(f"| {i} | {c['matched']} | {c['inliers']} | {_f(c['centre_error_median'], '.4f')} | "
+                             f"{_f(c['rotation_error_median_deg'], '.3f')} | {_f(c['scale'], '.4g')} |")
+            else:
+                lines.append(f"| {i} | n/a | n/a | n/a | n/a | n/a |")
+        lines.append("")
     b = report.get("baseline")
     if b:
         lines += ["## Comparison (same steps per model)", "",
@@ -427,7 +508,11 @@ def _markdown(report: dict, spec: ScenarioSpec, ids: list[int]) -> str:
                 gain = s.get("gain_over_alone_others_only_db", {}).get(str(i))
                 lines.append(f"| {i} | {_f(f.get('psnr'))} | {_f(a.get('psnr'))} | {_f(f.get('psnr_others_only'))} | "
                              f"{_f(a.get('psnr_others_only'))} | {_f(gain)} |")
-            lines += ["", "'Alone' trains on the robot's own views only, with its pose fixed to the truth.", ""]
+            for i in ids:
+                if b["alone"][str(i)].get("error"):
+                    lines.append(f"- robot {i} alone failed: {b['alone'][str(i)]['error']}")
+            lines += ["", "'Alone' trains on the robot's own views only, with its pose fixed to the truth"
+                      + (" (images only: its calibrated SfM frame, and the split's field box)." if spec.split.images_only else "."), ""]
     lines += ["## Faults applied", ""]
     if report["faults"]:
         lines += ["| time (s) | swarm round | fault | rounds done per robot |", "|---|---|---|---|"]

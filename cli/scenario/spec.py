@@ -12,6 +12,7 @@ error that names it. Example (every table but ``[scenario]`` is optional)::
     [split]                                    # agent.data.split.SplitConfig, see there
     overlap = 0.1
     frame = "offset"
+    # images_only = true                       # robots get no poses (own SfM); robot_image_width = 400
 
     [topology]
     kind = "ring"                              # full | ring | star | line | edges (+ edges = [[1, 2]], hub = 1)
@@ -92,6 +93,13 @@ class SplitSpec:
     holdout_every: int = 8  # held-out views 0, k, 2k, ... (the report's evaluation set)
     offset_rotation_deg: tuple[float, float, float] = (30.0, 30.0, 30.0)
     offset_translation: tuple[float, float, float] = (3.0, 3.0, 3.0)
+    # Robots get images only, no poses: each runs its own SfM and its local frame is the SfM's
+    # (needs daemon.initial_pose = "coarse" and training.train.pose.mode = "sim3").
+    images_only: bool = False
+    # Write the robots' images at this width, e.g. for their SfM, which needs more pixels than
+    # training (training.image_width downscales them again); default: the scenario's width.
+    # The held-out views and the centralised baseline stay at the scenario's width.
+    robot_image_width: int | None = None
     seed: int = 0
 
     def to_split_config(self, robots: int):
@@ -106,6 +114,7 @@ class SplitSpec:
             random_max_scale=self.max_scale,
             offset_rotation_deg=self.offset_rotation_deg,
             offset_translation=self.offset_translation,
+            images_only=self.images_only,
             seed=self.seed,
         )
 
@@ -265,6 +274,7 @@ class ScenarioSpec:
         if self.width is not None and self.width < 8:
             raise ValueError(f"width must be >= 8, got {self.width}")
         self.split.to_split_config(self.robots)  # validates frame, overlap ... (DataError is a ValueError)
+        self._check_images()
         self.topology_obj()  # validates kind/edges/hub against the ids
         self._check_network()
         self._check_daemon()
@@ -295,6 +305,26 @@ class ScenarioSpec:
         return list(self.topology_obj().edges)
 
     # --- validation -------------------------------------------------------------------------------
+    def _check_images(self) -> None:
+        """Robot image width and images-only robots: what they need, said rather than overridden."""
+        w = self.split.robot_image_width
+        if w is not None:
+            if self.width is None:
+                raise ValueError("split.robot_image_width needs scenario.width (the width of the held-out views "
+                                 "and of the centralised baseline)")
+            if w < self.width:
+                raise ValueError(f"split.robot_image_width ({w}) must be >= scenario.width ({self.width}): it is "
+                                 "for giving the robots more pixels than the evaluation, not fewer")
+        if self.split.images_only:
+            initial = self.daemon.get("initial_pose", "identity")
+            if initial != "coarse":
+                raise ValueError(f"split.images_only: every robot's frame is its own SfM's, so the relative poses "
+                                 f"need a coarse start: set daemon.initial_pose = \"coarse\" (got {initial!r})")
+            mode = self.training.train.pose.mode
+            if mode != "sim3":
+                raise ValueError(f"split.images_only: SfM frames have arbitrary scales, so the relative poses must "
+                                 f"be Sim(3): set training.train.pose.mode = \"sim3\" (got {mode!r})")
+
     def _check_network(self) -> None:
         from protocol.transport import TransportConfig
 
