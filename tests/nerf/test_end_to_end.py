@@ -120,3 +120,31 @@ def test_a_pose_started_from_an_estimate_learns_with_smaller_steps_and_remembers
     fresh = RobotTrainer(views, cfg, box)
     fresh.load_state_dict(estimated.state_dict())  # a restart keeps the smaller steps
     assert fresh.pose.from_estimate
+
+
+def test_fit_view_pose_undoes_a_misplaced_held_out_camera():
+    """Test-time pose fitting (pose-free NeRF evaluation) moves a camera off by 1 deg back onto its image."""
+    from agent.evaluation import fit_view_pose
+    from agent.geometry import so3_exp
+    from agent.metrics import psnr
+
+    views = load_views("procedural:views=40,width=32")
+    train = views.subset(list(range(1, 40)))
+    held = views.subset([0])
+    center, half, _ = estimate_scene_box(views)
+    trainer = RobotTrainer(train, small_config(300), box_from_center(center, half))
+    trainer.train(300)
+    truth = held.c2w[0].float()
+    turn = torch.eye(4)
+    turn[:3, :3] = so3_exp(torch.tensor([0.0, math.radians(1.0), 0.0]))
+    off = truth @ turn
+    gt = held.rgb(1.0)[0]
+    k = held.intrinsics[0]
+
+    def score(c2w):
+        return psnr(trainer.render(c2w, k, held.width, held.height, 1.0)["rgb"], gt)
+
+    fitted = fit_view_pose(trainer, off, k, gt, steps=60)
+    print(f"true pose {score(truth):.2f} dB, off by 1 deg {score(off):.2f}, fitted {score(fitted):.2f}")
+    assert score(fitted) > score(off) + 1.0
+    assert score(fitted) > score(truth) - 1.0
