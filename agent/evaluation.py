@@ -268,7 +268,7 @@ def fit_view_pose(trainer, c2w: Tensor, intrinsics: Tensor, image: Tensor, steps
     gen = torch.Generator(device=dev).manual_seed(seed)
     background = torch.ones(3, device=dev)
     zero = torch.zeros((), device=dev)
-    c2w_inv = torch.linalg.inv(c2w)
+    c2w_inv = sim3_inverse(c2w.double()).float()  # pose math stays in agent.geometry
     for _ in range(steps):
         u = torch.randint(0, width, (rays_per_step,), generator=gen, device=dev)
         v = torch.randint(0, height, (rays_per_step,), generator=gen, device=dev)
