@@ -16,9 +16,11 @@ Why these choices:
 
 - Snapshots are published with ``CongestionControl.BLOCK`` and reliable delivery: with the
   default DROP a 64 MB put is silently lost (zenoh#2258). BLOCK closes a link that stays
-  blocked longer than ``block_wait_before_close_ms`` (5 s: a live link drains well within it,
-  and a cut one must not hold its sender long). Periodic messages (status) and replies to
-  queries over a link that may be dying use DROP: a blocked reply stalls Zenoh's runtime.
+  blocked longer than ``block_wait_before_close_ms``, half the lease by default: while a put
+  waits on a cut link the whole session stops sending, keep-alives included, so a wait as
+  long as the lease (Zenoh's default is 5 s) lets the healthy links expire too. A slow but live
+  link (10% loss, 100 ms each way) frees a queue slot well within it. Periodic messages (status)
+  and replies to queries over a link that may be dying use DROP.
 - The lease (``lease_ms``, ~2 s) bounds how long a hung robot or a cut link looks alive; a
   killed process is seen at once because its TCP link closes.
 - ``transport/link/rx/max_message_size`` is set to ``max_message_bytes`` so Zenoh itself refuses
@@ -66,9 +68,21 @@ class TransportConfig:
     multicast_scouting: bool = False
     lease_ms: int = 2000
     # A put with BLOCK waits at most this long for room in a link's queue, then Zenoh closes the
-    # link. A slow but live link keeps draining well within it; a cut link must not hold a
-    # snapshot (and its sender) for long. Zenoh's default is 5 s.
-    block_wait_before_close_ms: int = 5_000
+    # link. None: half the lease. It must stay below the lease: while a put waits on a cut link,
+    # the whole Zenoh session stops sending (keep-alives included), so with Zenoh's default of
+    # 5 s the healthy links' leases ran out too and they flapped for seconds (measured: 1 s
+    # lease, a ring with one link cut; the healed link then stayed unused for 7 rounds). A slow
+    # but live link frees a queue slot well within it.
+    block_wait_before_close_ms: int | None = None
+    # Threads of Zenoh's receiving and sending runtimes (Zenoh's defaults: 2 and 1). Zenoh sets
+    # SO_LINGER to 10 s on its TCP sockets, so closing the socket of a cut link, which still
+    # holds unsent data, blocks the closing thread for up to 10 s. Both ends dial each other, so
+    # a cut link closes two sockets: with 2 receive threads both were stuck in close() (seen in
+    # gdb) and every healthy link stopped receiving too; all robots of a ring with one link cut
+    # waited 8-10 s in the same round. The receive threads are set through ZENOH_RUNTIME before
+    # the first session opens (an operator's own ZENOH_RUNTIME wins).
+    rx_threads: int = 8
+    tx_threads: int = 4
     # Reconnect backoff for configured endpoints after a session is lost (a healed link is
     # used again within about reconnect_max_ms).
     reconnect_init_ms: int = 250
@@ -95,8 +109,14 @@ class TransportConfig:
             raise ValueError("no listen or connect endpoints and multicast scouting off: this robot could never meet a peer")
         if type(self.lease_ms) is not int or self.lease_ms < 100:
             raise ValueError("lease_ms must be an integer >= 100")
-        if type(self.block_wait_before_close_ms) is not int or self.block_wait_before_close_ms <= 0:
-            raise ValueError("block_wait_before_close_ms must be a positive integer")
+        for name in ("rx_threads", "tx_threads"):
+            n = getattr(self, name)
+            if type(n) is not int or not 1 <= n <= 64:
+                raise ValueError(f"{name} must be an integer in 1..64, got {n!r}")
+        wait = self.block_wait_before_close_ms
+        if wait is not None and (type(wait) is not int or not 0 < wait < self.lease_ms):
+            raise ValueError(f"block_wait_before_close_ms must be a positive integer below lease_ms "
+                             f"({self.lease_ms}), got {wait!r}: a put blocked for longer starves every link")
         if not (type(self.reconnect_init_ms) is int and type(self.reconnect_max_ms) is int
                 and 0 < self.reconnect_init_ms <= self.reconnect_max_ms):
             raise ValueError("need integers 0 < reconnect_init_ms <= reconnect_max_ms")
@@ -119,6 +139,9 @@ class TransportConfig:
             if not isinstance(k, str) or not isinstance(v, str):
                 raise ValueError(f"extra must map config paths to json5 strings, got {k!r}: {v!r}")
 
+    def block_wait_ms(self) -> int:
+        return self.block_wait_before_close_ms if self.block_wait_before_close_ms is not None else self.lease_ms // 2
+
     def zenoh_settings(self) -> dict[str, str]:
         """The Zenoh config entries (path -> json5 value) this config stands for, in order."""
         self.validate()
@@ -128,9 +151,10 @@ class TransportConfig:
             "connect/endpoints": json.dumps(self.connect),
             "scouting/multicast/enabled": json.dumps(self.multicast_scouting),
             "transport/link/tx/lease": json.dumps(self.lease_ms),
+            "transport/link/tx/threads": json.dumps(self.tx_threads),
             # Zenoh counts this one in microseconds
             "transport/link/tx/queue/congestion_control/block/wait_before_close": json.dumps(
-                self.block_wait_before_close_ms * 1000),
+                self.block_wait_ms() * 1000),
             "transport/link/rx/max_message_size": json.dumps(self.max_message_bytes),
             "connect/retry": json.dumps({"period_init_ms": self.reconnect_init_ms,
                                          "period_max_ms": self.reconnect_max_ms,
@@ -213,8 +237,13 @@ class ZenohTransport:
             raise TransportError("this transport was closed; make a new one")
         if self._session is not None:
             return self
+        if os.environ.get("RUST_LOG"):
+            zenoh.try_init_log_from_env()  # Zenoh's own log on stderr, for diagnosing links; off by default
+        conf = self.cfg.to_zenoh()  # a bad config raises ValueError here, before anything changes
+        # Read by Zenoh when its runtimes start, i.e. at the first link of this process.
+        os.environ.setdefault("ZENOH_RUNTIME", f"(rx: (worker_threads: {self.cfg.rx_threads}))")
         try:
-            self._session = zenoh.open(self.cfg.to_zenoh())
+            self._session = zenoh.open(conf)
         except ValueError:
             raise
         except Exception as exc:

@@ -151,6 +151,17 @@ def role_watcher(args) -> None:
         wait_for_stdin_close()
 
 
+def role_runtime_threads(args) -> None:
+    """Once linked to robot 1, report the names of Zenoh's runtime threads in this process."""
+    with transport(args, args.id) as net:
+        net.declare_alive()
+        if not wait_for_alive(net, 1, 20):
+            emit("error", detail="robot 1 never appeared")
+            return
+        names = [open(f"/proc/self/task/{t}/comm").read().strip() for t in os.listdir("/proc/self/task")]
+        emit("threads", names=sorted(n for n in names if n[:3] in ("rx-", "tx-")))
+
+
 def role_latest_server(args) -> None:
     """Robot 0 runs rounds 0..3, publishing each snapshot and serving the newest on latest/0."""
     spec = helpers.small_spec()
@@ -162,6 +173,55 @@ def role_latest_server(args) -> None:
             net.publish(net.keys.theta(0, r, to=0), data)
             net.set_latest(data)
         emit("ready", rounds=4)
+        wait_for_stdin_close()
+
+
+def role_sink(args) -> None:
+    """Subscribe to robot 0's snapshots and drop them; hold a token (the test freezes this one)."""
+    with transport(args, args.id) as net:
+        net.subscribe(net.keys.theta_of(0), lambda key, data: None)
+        net.declare_alive()
+        emit("ready")
+        wait_for_stdin_close()
+
+
+def role_stuck_pusher(args) -> None:
+    """Robot 0, linked to a sink (robot 1) and a healthy robot 2: on a "go" line on stdin, push
+    1 MB snapshots to robot 1 from a sender thread, as the daemon does, for 8 s; then report every
+    live set seen meanwhile and the longest put. The test freezes robot 1 first, so the puts
+    block on its link."""
+    seen: list[list[int]] = []
+    with transport(args, 0) as net:
+        net.declare_alive()
+        linked = threading.Event()
+
+        def on_alive(ids: frozenset[int]) -> None:
+            seen.append(sorted(ids))
+            if ids >= {0, 1, 2}:
+                linked.set()
+
+        net.watch_alive(on_alive)
+        if not linked.wait(20):
+            emit("error", detail=f"robots 1 and 2 never appeared: {seen}")
+            return
+        emit("ready")
+        sys.stdin.readline()
+        del seen[:-1]  # the live set at "go", then every change
+        payload = os.urandom(1 << 20)
+        t_go = time.monotonic()
+        blocked: list[tuple[float, float]] = []  # (start after go, seconds) of every put that waited
+
+        def push() -> None:
+            for r in range(args.size_mb):
+                t0 = time.monotonic()
+                net.publish(net.keys.theta(0, r, to=1), payload)
+                if time.monotonic() - t0 > 0.1:
+                    blocked.append((round(t0 - t_go, 2), round(time.monotonic() - t0, 2)))
+                time.sleep(0.05)
+
+        threading.Thread(target=push, daemon=True).start()
+        time.sleep(8.0)
+        emit("done", live_sets=list(seen), blocked=blocked)
         wait_for_stdin_close()
 
 
@@ -288,6 +348,9 @@ def role_self_check(args) -> None:
 
 
 ROLES = {
+    "runtime-threads": role_runtime_threads,
+    "sink": role_sink,
+    "stuck-pusher": role_stuck_pusher,
     "self-check": role_self_check,
     "big-publisher": role_big_publisher,
     "big-receiver": role_big_receiver,

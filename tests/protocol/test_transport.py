@@ -18,8 +18,8 @@ def test_defaults_map_onto_zenoh_keys():
     assert json.loads(s["connect/endpoints"]) == ["tcp/127.0.0.1:7448"]
     assert json.loads(s["scouting/multicast/enabled"]) is False
     assert json.loads(s["transport/link/tx/lease"]) == 2000
-    # Zenoh counts wait_before_close in microseconds
-    assert json.loads(s["transport/link/tx/queue/congestion_control/block/wait_before_close"]) == 5_000_000
+    # Zenoh counts wait_before_close in microseconds; by default it is half the lease
+    assert json.loads(s["transport/link/tx/queue/congestion_control/block/wait_before_close"]) == 1_000_000
     conf = cfg.to_zenoh()  # Zenoh accepts every entry
     assert json.loads(conf.get_json("transport/link/tx/lease")) == 2000
     assert json.loads(conf.get_json("transport/link/rx/max_message_size")) == cfg.max_message_bytes
@@ -52,6 +52,7 @@ def test_tls_settings_and_extra_overrides(tmp_path):
     (dict(listen=[], connect=[]), "never meet a peer"),
     (dict(lease_ms=10), "lease_ms"),
     (dict(block_wait_before_close_ms=0), "block_wait_before_close_ms"),
+    (dict(block_wait_before_close_ms=2000, lease_ms=2000), "below lease_ms"),
     (dict(tls_root_ca="/nonexistent/ca.pem"), "no such file"),
     (dict(listen=["tls/127.0.0.1:7447"]), "tls_root_ca"),
     (dict(enable_mtls=True), "enable_mtls needs"),

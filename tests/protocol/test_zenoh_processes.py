@@ -10,6 +10,7 @@ import os
 import signal
 import time
 
+from protocol.transport import TransportConfig
 from tests.protocol.helpers import free_port
 
 
@@ -108,3 +109,40 @@ def test_restarted_robot_is_seen_again_by_a_peer_that_connects_to_it(peers):
     peers("alive", "--listen", port, "--id", "1").expect("ready", 20)
     back = watcher.expect("alive", 20, lambda e: 1 in e["ids"])
     print(f"\nrestarted robot seen again after {back['t'] - t_restart:.2f} s")
+
+
+def test_a_put_stuck_on_a_frozen_peer_leaves_the_healthy_link_alone(peers):
+    """Robot 0 pushes to robot 1, which is frozen (its link's queue fills), while linked to robot 2.
+
+    While a BLOCK put waits for room, robot 0's whole session stops sending, keep-alives too.
+    With Zenoh's 5 s wait (longer than the 2 s lease) robot 0 lost robot 2 for a while in both
+    runs made (live sets [0,1,2] [0,2] [0] [0,2]); the wait is now half the lease, so only the
+    frozen peer's link goes. (Robots 1 and 2 only dial robot 0, so they have no link of their own.)
+    """
+    port = str(free_port())
+    pusher = peers("stuck-pusher", "--listen", port, "--size-mb", "64")
+    sink = peers("sink", "--connect", port, "--id", "1")
+    sink.expect("ready", 20)
+    peers("alive", "--connect", port, "--id", "2").expect("ready", 20)
+    pusher.expect("ready", 20)  # it sees robots 1 and 2
+    os.kill(sink.proc.pid, signal.SIGSTOP)
+    try:
+        pusher.proc.stdin.write("go\n")
+        pusher.proc.stdin.flush()
+        done = pusher.expect("done", 20)
+    finally:
+        os.kill(sink.proc.pid, signal.SIGKILL)
+    print(f"\nputs that waited (start after go, s): {done['blocked']}; live sets: {done['live_sets']}")
+    assert done["live_sets"][0] == [0, 1, 2]
+    assert any(1 not in ids for ids in done["live_sets"])  # the frozen peer's link went ...
+    assert all(2 in ids for ids in done["live_sets"]), done["live_sets"]  # ... and only that one
+    assert done["blocked"] and max(s for _, s in done["blocked"]) < 1.5  # half the 2 s lease
+
+
+def test_zenoh_runs_enough_receive_threads_to_survive_a_lingering_close(peers):
+    """A cut link closes two sockets, each of which can block its thread for Zenoh's 10 s linger."""
+    port = str(free_port())
+    peers("alive", "--listen", port, "--id", "1").expect("ready", 20)
+    names = peers("runtime-threads", "--connect", port, "--id", "0").expect("threads", 20)["names"]
+    assert sum(n.startswith("rx-") for n in names) == TransportConfig().rx_threads, names
+    assert any(n.startswith("tx-") for n in names), names
