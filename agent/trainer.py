@@ -21,7 +21,7 @@ from torch import Tensor, nn
 
 from agent.consensus import Consensus, ConsensusConfig
 from agent.data.views import Views
-from agent.geometry import sim3_from_params, sim3_inverse, transform_c2w
+from agent.geometry import sim3_from_params, sim3_inverse, so3_exp, transform_c2w
 from agent.metrics import psnr, ssim
 from agent.nerf.field import FieldConfig, NGPField
 from agent.nerf.occupancy import OccupancyConfig, OccupancyGrid
@@ -65,6 +65,23 @@ class CoarseToFineConfig:
 
 
 @dataclass
+class CameraRefineConfig:
+    """Refine the robot's own cameras while it trains (as BARF does): a small rotation about each
+    camera's centre and a shift per view, and one focal-length scale for the robot.
+
+    For robots whose cameras come from their own SfM: on lego they are 0.1-0.2 deg off the truth
+    and the focal length differs, which a shared field cannot fit. The corrections stay on the
+    robot (they are not part of theta) and start once the field has formed.
+    """
+
+    enabled: bool = False
+    lr_rotation: float = 2e-4  # radians per step
+    lr_translation: float = 2e-4  # box units per step
+    lr_focal: float = 2e-4  # log focal length per step
+    start_step: int = 200
+
+
+@dataclass
 class DepthConfig:
     weight: float = 0.0  # gamma; 0 disables the depth term
     learn_affine: bool = True  # learn a per-image scale a_m and shift b_m of the prior
@@ -89,6 +106,7 @@ class TrainConfig:
     optim: OptimConfig = config_field(default_factory=OptimConfig)
     pose: PoseConfig = config_field(default_factory=PoseConfig)
     coarse_to_fine: CoarseToFineConfig = config_field(default_factory=CoarseToFineConfig)
+    cameras: CameraRefineConfig = config_field(default_factory=CameraRefineConfig)
     depth: DepthConfig = config_field(default_factory=DepthConfig)
 
 
@@ -212,6 +230,10 @@ class RobotTrainer:
         learn_affine = cfg.depth.weight > 0 and cfg.depth.learn_affine and self.depth_prior is not None
         self.depth_log_scale.requires_grad_(learn_affine)
         self.depth_shift.requires_grad_(learn_affine)
+        refine = cfg.cameras.enabled
+        self.view_phi = nn.Parameter(torch.zeros(m, 3, device=dev), requires_grad=refine)  # [M, 3]
+        self.view_shift = nn.Parameter(torch.zeros(m, 3, device=dev), requires_grad=refine)  # [M, 3] box units
+        self.log_focal = nn.Parameter(torch.zeros((), device=dev), requires_grad=refine)
 
         o = cfg.optim
         self.theta_names = [n for n, _ in self.field.named_parameters()]
@@ -222,6 +244,9 @@ class RobotTrainer:
                 {"params": [self.pose.translation], "lr": cfg.pose.lr_translation, "name": "translation"},
                 {"params": [self.pose.log_scale], "lr": cfg.pose.lr_scale, "name": "scale"},
                 {"params": [self.depth_log_scale, self.depth_shift], "lr": cfg.depth.lr, "name": "depth"},
+                {"params": [self.view_phi], "lr": cfg.cameras.lr_rotation, "name": "view_rotation"},
+                {"params": [self.view_shift], "lr": cfg.cameras.lr_translation, "name": "view_shift"},
+                {"params": [self.log_focal], "lr": cfg.cameras.lr_focal, "name": "focal"},
             ],
             betas=o.betas,
             eps=o.eps,
@@ -290,6 +315,12 @@ class RobotTrainer:
         factor = p.lr_factor_from_estimate if self.pose.from_estimate else 1.0
         return factor * p.decay_to ** ((step - p.start_step) / span)
 
+    def _camera_lr_factor(self, step: int) -> float:
+        c = self.cfg.cameras
+        if not c.enabled or step < c.start_step:
+            return 0.0
+        return self.cfg.pose.decay_to ** ((step - c.start_step) / max(self.cfg.total_steps - c.start_step, 1))
+
     def level_weights(self, step: int | None = None) -> Tensor | None:
         c = self.cfg.coarse_to_fine
         if not c.enabled:
@@ -313,8 +344,31 @@ class RobotTrainer:
         return torch.full((n, 3), value, device=self.device)
 
     def cameras_shared(self) -> Tensor:
-        """The robot's cameras in the shared frame g.  -> [M, 4, 4] (differentiable in T)."""
-        return transform_c2w(self.pose.matrix(), self.c2w_local)
+        """The robot's cameras in the shared frame g, refined.  -> [M, 4, 4] (differentiable in T
+        and in the per-view corrections)."""
+        c2w = transform_c2w(self.pose.matrix(), self.c2w_local)  # [M, 4, 4]
+        if not self.cfg.cameras.enabled:
+            return c2w
+        box_scale = self.box_from_shared[:3, :3].det().abs().pow(1 / 3)  # box units per shared unit
+        rot = so3_exp(self.view_phi) @ c2w[:, :3, :3]  # [M, 3, 3] turned about the camera centre
+        centre = c2w[:, :3, 3] + self.view_shift / box_scale  # [M, 3]
+        top = torch.cat([rot, centre.unsqueeze(-1)], dim=-1)  # [M, 3, 4]
+        return torch.cat([top, c2w[:, 3:, :]], dim=1)
+
+    def camera_intrinsics(self) -> Tensor:
+        """fx, fy, cx, cy of the robot's views with the learnt focal scale.  -> [M, 4]"""
+        if not self.cfg.cameras.enabled:
+            return self.intrinsics
+        return torch.cat([self.intrinsics[:, :2] * torch.exp(self.log_focal), self.intrinsics[:, 2:]], dim=-1)
+
+    @torch.no_grad()
+    def refined_views(self) -> Views:
+        """The robot's views with its refined cameras, back in its local frame (for calibration)."""
+        if not self.cfg.cameras.enabled:
+            return self.views
+        local = transform_c2w(sim3_inverse(self.pose.matrix().double()), self.cameras_shared().double())
+        v = self.views
+        return Views(v.images, local.float().cpu(), self.camera_intrinsics().cpu(), list(v.names), v.depth, v.meta)
 
     def train_step(self) -> dict[str, float]:
         cfg = self.cfg
@@ -322,8 +376,12 @@ class RobotTrainer:
         lw = self.level_weights(step)
         self.grid.maybe_update(step, lambda x: self.field.density(x, lw)[0], self.generator)
         for group, base in zip(self.optimizer.param_groups, self.base_lrs):
-            pose_group = group["name"] in ("rotation", "translation", "scale")
-            group["lr"] = base * (self._pose_lr_factor(step) if pose_group else self._lr_factor(step))
+            if group["name"] in ("rotation", "translation", "scale"):
+                group["lr"] = base * self._pose_lr_factor(step)
+            elif group["name"] in ("view_rotation", "view_shift", "focal"):
+                group["lr"] = base * self._camera_lr_factor(step)
+            else:
+                group["lr"] = base * self._lr_factor(step)
 
         m, h, w, _ = self.images.shape
         n = cfg.rays_per_step
@@ -334,7 +392,7 @@ class RobotTrainer:
         px = torch.randint(0, h * w, (n,), generator=gen, device=self.device)
         row, col = px // w, px % w
         c2w = self.cameras_shared()[img]  # [n, 4, 4]
-        rays = pixel_rays(c2w, self.intrinsics[img], col.float() + 0.5, row.float() + 0.5)
+        rays = pixel_rays(c2w, self.camera_intrinsics()[img], col.float() + 0.5, row.float() + 0.5)
         pixels = self.images[img, row, col]  # [n, C]
         bg = self._background(n)
         if pixels.shape[-1] == 4:
@@ -434,6 +492,8 @@ class RobotTrainer:
             "pose_trainable": self.pose.trainable,
             "pose_from_estimate": self.pose.from_estimate,
             "depth": {"log_scale": self.depth_log_scale.detach().clone(), "shift": self.depth_shift.detach().clone()},
+            "cameras": {"phi": self.view_phi.detach().clone(), "shift": self.view_shift.detach().clone(),
+                        "log_focal": self.log_focal.detach().clone()},
             "optimizer": self.optimizer.state_dict(),
             "consensus": None if self.consensus is None else self.consensus.state_dict(),
             "generator": self.generator.get_state(),
@@ -451,7 +511,20 @@ class RobotTrainer:
         with torch.no_grad():
             self.depth_log_scale.copy_(state["depth"]["log_scale"])
             self.depth_shift.copy_(state["depth"]["shift"])
-        self.optimizer.load_state_dict(state["optimizer"])
+            if "cameras" in state:  # checkpoints from before camera refinement have none
+                self.view_phi.copy_(state["cameras"]["phi"])
+                self.view_shift.copy_(state["cameras"]["shift"])
+                self.log_focal.copy_(state["cameras"]["log_focal"])
+        opt = state["optimizer"]
+        if "cameras" not in state:  # a checkpoint from before camera refinement: no camera groups
+            mine = self.optimizer.state_dict()["param_groups"]
+            next_id = sum(len(g["params"]) for g in opt["param_groups"])
+            extra = []
+            for g in mine[len(opt["param_groups"]):]:
+                extra.append({**g, "params": list(range(next_id, next_id + len(g["params"])))})
+                next_id += len(g["params"])
+            opt = {"state": opt["state"], "param_groups": opt["param_groups"] + extra}
+        self.optimizer.load_state_dict(opt)
         if self.consensus is not None and state["consensus"] is not None:
             self.consensus.load_state_dict(state["consensus"])
         self.generator.set_state(state["generator"])

@@ -232,7 +232,7 @@ def _calibrate_frames(evalset, out: Path, snaps: dict[int, list[int]], echo) -> 
             continue
         try:
             trainer = load_for_eval(out / "robots" / str(i), out / "data" / f"robot{i}")
-            cal = evalset.calibrate(i, trainer.views)
+            cal = evalset.calibrate(i, trainer.refined_views())  # its cameras as it refined them
         except (DataError, OSError) as e:
             notes.append(f"robot {i}: its SfM frame could not be calibrated ({e}): not evaluated")
             continue

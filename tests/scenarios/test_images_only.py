@@ -162,7 +162,8 @@ def test_report_calibrates_frames_and_trains_alone_in_them(tmp_path, monkeypatch
     import agent.daemon
 
     def fake_load_for_eval(run_dir, data_dir, round=None):
-        return SimpleNamespace(views=load_views(data_dir, width=24))
+        views = load_views(data_dir, width=24)
+        return SimpleNamespace(views=views, refined_views=lambda: views)  # cameras as trained (no refinement)
 
     monkeypatch.setattr(agent.daemon, "load_for_eval", fake_load_for_eval)
     evalset = EvalSet.from_dir(out / "data")
