@@ -266,8 +266,10 @@ def _baselines(spec: ScenarioSpec, out: Path, evalset, echo) -> dict:
         t = time.monotonic()
         echo(f"[report] baseline: centralised model, {steps} steps")
         views = load_views(spec.resolved_dataset(), width=spec.width)
+        # true poses: the robots' camera refinement (for SfM cameras) has nothing to correct here
         cfg = dataclasses.replace(spec.training.train, total_steps=steps, seed=spec.training.seed,
-                                  init_seed=spec.training.seed)
+                                  init_seed=spec.training.seed,
+                                  cameras=dataclasses.replace(spec.training.train.cameras, enabled=False))
         run = train_baseline(views, cfg, spec.split.holdout_every)
         scores = evaluate_heldout(run, views, with_ssim=spec.report.ssim)
         result["centralised"] = {"psnr": _mean(scores["psnr"]), "ssim": _mean(scores["ssim"]),
