@@ -158,8 +158,20 @@ def role_runtime_threads(args) -> None:
         if not wait_for_alive(net, 1, 20):
             emit("error", detail="robot 1 never appeared")
             return
-        names = [open(f"/proc/self/task/{t}/comm").read().strip() for t in os.listdir("/proc/self/task")]
-        emit("threads", names=sorted(n for n in names if n[:3] in ("rx-", "tx-")))
+        names: list[str] = []
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:  # the runtime's workers come up one by one
+            names = []
+            for t in os.listdir("/proc/self/task"):
+                try:
+                    names.append(open(f"/proc/self/task/{t}/comm").read().strip())
+                except OSError:  # a thread that just ended
+                    pass
+            names = sorted(n for n in names if n[:3] in ("rx-", "tx-"))
+            if sum(n.startswith("rx-") for n in names) >= TransportConfig().rx_threads:
+                break
+            time.sleep(0.1)
+        emit("threads", names=names)
 
 
 def role_latest_server(args) -> None:
