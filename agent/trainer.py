@@ -21,7 +21,7 @@ from torch import Tensor, nn
 
 from agent.consensus import Consensus, ConsensusConfig
 from agent.data.views import Views
-from agent.geometry import sim3_from_params, sim3_inverse, so3_exp, transform_c2w
+from agent.geometry import sim3_decompose, sim3_from_params, sim3_inverse, so3_exp, transform_c2w
 from agent.metrics import psnr, ssim
 from agent.nerf.field import FieldConfig, NGPField
 from agent.nerf.occupancy import OccupancyConfig, OccupancyGrid
@@ -309,17 +309,17 @@ class RobotTrainer:
 
     def _pose_lr_factor(self, step: int) -> float:
         p = self.cfg.pose
-        if step < p.start_step:
-            return 0.0
-        span = max(self.cfg.total_steps - p.start_step, 1)
         factor = p.lr_factor_from_estimate if self.pose.from_estimate else 1.0
-        return factor * p.decay_to ** ((step - p.start_step) / span)
+        return factor * self._decayed_from(step, p.start_step)
 
     def _camera_lr_factor(self, step: int) -> float:
-        c = self.cfg.cameras
-        if not c.enabled or step < c.start_step:
+        return self._decayed_from(step, self.cfg.cameras.start_step) if self.cfg.cameras.enabled else 0.0
+
+    def _decayed_from(self, step: int, start_step: int) -> float:
+        """0 before ``start_step``, then down geometrically to ``pose.decay_to`` at the last step."""
+        if step < start_step:
             return 0.0
-        return self.cfg.pose.decay_to ** ((step - c.start_step) / max(self.cfg.total_steps - c.start_step, 1))
+        return self.cfg.pose.decay_to ** ((step - start_step) / max(self.cfg.total_steps - start_step, 1))
 
     def level_weights(self, step: int | None = None) -> Tensor | None:
         c = self.cfg.coarse_to_fine
@@ -349,7 +349,7 @@ class RobotTrainer:
         c2w = transform_c2w(self.pose.matrix(), self.c2w_local)  # [M, 4, 4]
         if not self.cfg.cameras.enabled:
             return c2w
-        box_scale = self.box_from_shared[:3, :3].det().abs().pow(1 / 3)  # box units per shared unit
+        box_scale = sim3_decompose(self.box_from_shared)[0]  # box units per shared unit
         rot = so3_exp(self.view_phi) @ c2w[:, :3, :3]  # [M, 3, 3] turned about the camera centre
         centre = c2w[:, :3, 3] + self.view_shift / box_scale  # [M, 3]
         top = torch.cat([rot, centre.unsqueeze(-1)], dim=-1)  # [M, 3, 4]
@@ -414,7 +414,7 @@ class RobotTrainer:
             prior = self.depth_prior[img, row, col]  # [n] local z-depth, 0 = none
             has = prior > 0
             if bool(has.any()):
-                scale = self.pose.matrix()[:3, :3].det().abs().pow(1 / 3)  # s_i: local -> shared units
+                scale = sim3_decompose(self.pose.matrix())[0]  # s_i: local -> shared units
                 rendered_local = out.depth / scale
                 a = torch.exp(self.depth_log_scale[img])
                 target_depth = a * prior + self.depth_shift[img]

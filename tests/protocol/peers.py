@@ -199,9 +199,9 @@ def role_sink(args) -> None:
 
 def role_stuck_pusher(args) -> None:
     """Robot 0, linked to a sink (robot 1) and a healthy robot 2: on a "go" line on stdin, push
-    1 MB snapshots to robot 1 from a sender thread, as the daemon does, for 8 s; then report every
-    live set seen meanwhile and the longest put. The test freezes robot 1 first, so the puts
-    block on its link."""
+    ``--size-mb`` snapshots of 1 MB to robot 1 from a sender thread, as the daemon does; after 8 s
+    report every live set seen meanwhile and every put that waited. The test freezes robot 1
+    first, so the puts block on its link."""
     seen: list[list[int]] = []
     with transport(args, 0) as net:
         net.declare_alive()
