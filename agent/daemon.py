@@ -39,7 +39,7 @@ from agent.geometry import sim3_to_params
 from agent.swarm import RobotSetup, SwarmTrainingConfig, build_robot
 from protocol import codec
 from protocol.keys import Keys
-from protocol.membership import AliveView, Membership, Topology
+from protocol.membership import AliveView, LastHeard, Membership, Topology
 from protocol.messages import ModelSpec, Rejected, Status, ThetaSnapshot
 from protocol.rounds import Mailbox
 
@@ -62,6 +62,9 @@ class DaemonConfig:
     keep_rounds: bool = False  # also save rounds/<k>.pt (field + pose) for per-round reports
     join_timeout_s: float = 5.0  # query timeout for neighbours' newest snapshots
     pull_after_s: float = 2.0  # a neighbour's snapshot missing this long is asked for (pulled; PullPacing)
+    # The barrier stops waiting for a neighbour that sent nothing (heartbeat, snapshot) for this
+    # long, even if its token is still seen (see LastHeard: Zenoh can keep it for 10-20 s).
+    silent_after_s: float = 3.0
     # A robot that finds its neighbours this many rounds ahead when it comes back (restart, skip
     # after a freeze or a cut) takes their mean model instead of its own, and forgets its duals:
     # its own is stale, and C-ADMM would pull the neighbours back towards it. 0 = keep its own.
@@ -75,6 +78,9 @@ class DaemonConfig:
     def __post_init__(self) -> None:
         if self.round_timeout_s <= 0 or self.heartbeat_s <= 0 or self.threads < 1:
             raise ValueError("round_timeout_s and heartbeat_s must be > 0, threads >= 1")
+        if self.silent_after_s < 2 * self.heartbeat_s:
+            raise ValueError(f"silent_after_s ({self.silent_after_s}) must be at least two heartbeats "
+                             f"({2 * self.heartbeat_s} s): one lost heartbeat must not count as silence")
 
 
 @dataclass(frozen=True)
@@ -350,6 +356,7 @@ class Daemon:
         self.status_expect = codec.Expectation(swarm=swarm.name, allowed_senders=frozenset(swarm.topology.ids))
         self.membership = Membership(swarm.topology, robot_id)
         self.alive = AliveView(robot_id, cfg.alive_expiry_s)
+        self.last_heard = LastHeard()
         self.mailbox: Mailbox[ThetaSnapshot] = Mailbox(max_ahead=cfg.max_ahead, last_round=self.training.rounds)
         self.rejected: Counter[str] = Counter()
         self.round = 0
@@ -405,6 +412,7 @@ class Daemon:
             if parsed.receiver != self.robot_id:
                 raise Rejected("bad_kind", f"snapshot addressed to robot {parsed.receiver}")
             msg = codec.decode(data, self.expect, kind="theta", key=parsed)
+            self.last_heard.heard(msg.sender)
             self.mailbox.offer(msg.sender, msg.round, msg)
             barrier_round, began = self._barrier_began
             waited = time.monotonic() - began if msg.round == barrier_round else 0.0
@@ -423,6 +431,7 @@ class Daemon:
         except ValueError as e:
             self._reject("garbage", f"{key}: {e}")
             return
+        self.last_heard.heard(msg.sender)
         self.alive.merge(msg.alive_ages)
         self._remember_status(msg)
 
@@ -433,6 +442,8 @@ class Daemon:
     def _on_alive(self, ids: frozenset[int]) -> None:
         before = self.alive.direct
         self.alive.set_direct(ids)
+        for j in ids - before:
+            self.last_heard.heard(j)  # a token (re)appearing is news from it too
         for j in (ids - before) & self.membership.neighbours:
             # A link (re)appeared: snapshots pushed meanwhile found no subscriber. Push ours again
             # once the new session's subscriptions are through (the barrier pulls theirs).
@@ -533,8 +544,17 @@ class Daemon:
         """
 
         def awaited() -> set[int]:
-            return {j for j in self._reachable_neighbours()
-                    if (r := self.mailbox.newest_round(j)) is None or r <= round_index}
+            missing = {j for j in self._reachable_neighbours()
+                       if (r := self.mailbox.newest_round(j)) is None or r <= round_index}
+            silent = self.last_heard.silent(missing, self.cfg.silent_after_s)
+            for j in silent - given_up:
+                given_up.add(j)
+                self._event("silent", sender=j, silence_s=round(self.last_heard.silence_s(j), 2))
+                self.log(f"[robot {self.robot_id}] round {round_index}: robot {j} sent nothing for "
+                         f"{self.cfg.silent_after_s:.0f} s though its token is still seen; not waiting for it")
+            return missing - silent
+
+        given_up: set[int] = set()
 
         t0 = time.monotonic()
         self._barrier_began = (round_index, t0)

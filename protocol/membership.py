@@ -267,3 +267,35 @@ class AliveView:
                 i: 0.0 if i == self.self_id or i in self._direct else max(now - self._last_seen[i], 0.0)
                 for i in alive
             }
+
+
+class LastHeard:
+    """When each direct peer last sent us anything (a heartbeat, a snapshot) or reappeared.
+
+    A liveliness token is not proof that a peer can deliver: behind a cut link Zenoh dropped the
+    token of a peer 11 s and 21 s after the cut, with a 1 s lease (a CI run of the cut e2e test:
+    the closing socket of a link with unsent data lingers), and the barrier waited for it all
+    that time. A peer silent for longer than a few heartbeats is not worth waiting for, whatever
+    its token says. Times are ``time.monotonic()``; pass ``now`` in tests. Thread-safe.
+    """
+
+    def __init__(self, since: float | None = None):
+        self._since = time.monotonic() if since is None else since  # a peer never heard counts from here
+        self._lock = threading.Lock()
+        self._at: dict[int, float] = {}
+
+    def heard(self, peer: int, now: float | None = None) -> None:
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            self._at[peer] = max(now, self._at.get(peer, now))
+
+    def silence_s(self, peer: int, now: float | None = None) -> float:
+        """Seconds since ``peer`` was last heard (since this clock started if never)."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            return max(now - self._at.get(peer, self._since), 0.0)
+
+    def silent(self, peers: Iterable[int], after_s: float, now: float | None = None) -> frozenset[int]:
+        """The ``peers`` not heard for ``after_s`` seconds or more."""
+        now = time.monotonic() if now is None else now
+        return frozenset(j for j in peers if self.silence_s(j, now) >= after_s)

@@ -394,9 +394,12 @@ class ZenohTransport:
         with self._publishers_lock:  # not the counters lock: Zenoh callbacks never wait on this one
             pub = self._publishers.pop((key, block), None)
             if pub is None:
+                # Periodic messages (block=False) get a queue of their own, ahead of the snapshots:
+                # behind a snapshot crossing a slow link, a heartbeat would be dropped or late.
                 congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+                priority = zenoh.Priority.DATA if block else zenoh.Priority.DATA_HIGH
                 pub = self.session.declare_publisher(
-                    key, congestion_control=congestion, reliability=zenoh.Reliability.RELIABLE)
+                    key, congestion_control=congestion, priority=priority, reliability=zenoh.Reliability.RELIABLE)
             self._publishers[(key, block)] = pub  # most recent last
             while len(self._publishers) > self.PUBLISHER_CACHE:
                 evicted.append(self._publishers.pop(next(iter(self._publishers))))

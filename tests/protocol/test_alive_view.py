@@ -55,3 +55,16 @@ def test_membership_reference_follows_the_alive_view():
     assert m.reference == 1 and m.live_neighbours == {2}
     m.update(v.alive(now=3.0))  # no more news of robot 1
     assert m.reference == 2
+
+
+def test_last_heard_counts_silence_from_the_last_message_or_from_the_start():
+    from protocol.membership import LastHeard
+
+    clock = LastHeard(since=100.0)
+    assert clock.silence_s(3, now=101.5) == 1.5  # never heard: counted from the start
+    clock.heard(3, now=102.0)
+    clock.heard(3, now=101.0)  # a late callback never moves the clock back
+    assert clock.silence_s(3, now=104.0) == 2.0
+    assert clock.silent([3, 4], after_s=3.0, now=104.0) == {4}  # 4: never heard, 4 s
+    assert clock.silent([3, 4], after_s=3.0, now=105.0) == {3, 4}
+    assert clock.silent([3], after_s=3.0, now=104.9) == frozenset()
