@@ -41,6 +41,10 @@ class FrameCalibration:
     inliers: int  # of them, those the final fit used
     centre_error_median: float  # world units: |fitted - true| camera centre, over the inliers
     rotation_error_median_deg: float  # camera orientation, fitted vs true (not used by the fit)
+    # The robot's own focal length (its SfM's, as refined in training), in pixels at ``width``: a
+    # frame fitted on camera centres only matches the scene through the camera that built it.
+    focal_px: float | None = None
+    width: int | None = None
 
     def summary(self) -> dict[str, float | int]:
         return {
@@ -49,6 +53,7 @@ class FrameCalibration:
             "centre_error_median": self.centre_error_median,
             "rotation_error_median_deg": self.rotation_error_median_deg,
             "scale": float(sim3_decompose(self.T_world_from_local)[0]),  # world units per SfM unit
+            **({"focal_px": self.focal_px, "width": self.width} if self.focal_px is not None else {}),
         }
 
 
@@ -115,6 +120,7 @@ class EvalSet:
         if robot_id not in self.cameras_world:
             raise DataError(f"robot {robot_id} has no cameras_world in the truth: its frame is known, not calibrated")
         cal = calibrate_frame(views.names, views.c2w, self.cameras_world[robot_id])
+        cal.focal_px, cal.width = float(views.intrinsics[:, 0].median()), views.width
         self.calibration[robot_id] = cal
         self.T_world_from_local[robot_id] = cal.T_world_from_local
         return cal
@@ -147,6 +153,23 @@ class EvalSet:
     def shared_cameras(self) -> Tensor:
         """The held-out cameras in the shared frame g.  -> [M, 4, 4]."""
         return transform_c2w(self.T_shared_from_world, self.views.c2w.double()).float()
+
+    def shared_intrinsics(self, camera_of: int | None = None) -> Tensor:
+        """The held-out views' intrinsics in the camera model of the frame the field was built in.  -> [M, 4]
+
+        With known frames that is the truth. A swarm's field is built in the reference's SfM
+        frame, with the focal length its SfM found (1-2% off on lego); after a Sim(3) fit on camera
+        centres the scene only matches through that focal length, as test views registered into
+        an SfM model get its intrinsics (measured on lego: 26.91 -> 29.02 dB for the reference).
+        ``camera_of``: a robot trained alone in its own SfM frame (default: the reference).
+        """
+        k = self.views.intrinsics.clone()
+        cal = self.calibration.get(self.reference_id if camera_of is None else camera_of)
+        if cal is not None and cal.focal_px is not None:
+            focal = cal.focal_px * self.views.width / cal.width
+            k[:, 0] = focal
+            k[:, 1] = focal * self.views.intrinsics[:, 1] / self.views.intrinsics[:, 0]
+        return k
 
     def others_only(self, robot_id: int) -> list[int]:
         """Indices of held-out views that only other robots saw (outside this robot's sector)."""
@@ -210,6 +233,7 @@ class RobotEval:
     others_only: list[int]  # indices of views only other robots saw
     pose: dict[str, float] = field(default_factory=dict)  # rotation_deg, translation, scale_rel
     psnr_pose_fitted: list[float] | None = None  # per held-out view, after fit_view_pose (if asked)
+    psnr_true_intrinsics: list[float] | None = None  # per held-out view, with the truth's intrinsics (if asked)
 
     @staticmethod
     def _mean(values: list[float]) -> float:
@@ -238,6 +262,8 @@ class RobotEval:
             "psnr_others_only": self.psnr_others,
             "ssim_others_only": self.ssim_others,
             **({"psnr_pose_fitted": self._mean(self.psnr_pose_fitted)} if self.psnr_pose_fitted is not None else {}),
+            **({"psnr_true_intrinsics": self._mean(self.psnr_true_intrinsics)}
+               if self.psnr_true_intrinsics is not None else {}),
             **{f"pose_{k}": v for k, v in self.pose.items()},
         }
 
@@ -285,7 +311,8 @@ def fit_view_pose(trainer, c2w: Tensor, intrinsics: Tensor, image: Tensor, steps
 
 
 def evaluate_robot(trainer, evalset: EvalSet, robot_id: int, with_ssim: bool = True,
-                   pose_fit_steps: int = 0) -> RobotEval:
+                   pose_fit_steps: int = 0, compare_true_intrinsics: bool = False,
+                   camera_of: int | None = None) -> RobotEval:
     """Render every held-out view with this robot's field in the shared frame; compare to truth.
 
     The pose error is taken in the world frame (``T_world_from_shared @ T_i`` against
@@ -296,10 +323,14 @@ def evaluate_robot(trainer, evalset: EvalSet, robot_id: int, with_ssim: bool = T
     shared = Views(
         images=evalset.views.images,
         c2w=evalset.shared_cameras(),
-        intrinsics=evalset.views.intrinsics,
+        intrinsics=evalset.shared_intrinsics(camera_of),
         names=evalset.views.names,
     )
     scores = trainer.evaluate(shared, frame="shared", with_ssim=with_ssim)
+    true_k = None
+    if compare_true_intrinsics and not torch.equal(shared.intrinsics, evalset.views.intrinsics):
+        as_truth = Views(images=shared.images, c2w=shared.c2w, intrinsics=evalset.views.intrinsics, names=shared.names)
+        true_k = trainer.evaluate(as_truth, frame="shared", with_ssim=False)["psnr"]
     fitted = None
     if pose_fit_steps > 0:
         gt = shared.rgb(1.0)  # [M, H, W, 3]
@@ -315,4 +346,5 @@ def evaluate_robot(trainer, evalset: EvalSet, robot_id: int, with_ssim: bool = T
         others_only=evalset.others_only(robot_id),
         pose=pose_error(evalset.world_from_local(evalset.reference_id) @ estimate, evalset.world_from_local(robot_id)),
         psnr_pose_fitted=fitted,
+        psnr_true_intrinsics=true_k,
     )

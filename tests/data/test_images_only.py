@@ -135,3 +135,29 @@ def test_known_frames_are_unchanged_by_the_world_unit_pose_error(views):
                               pose=SimpleNamespace(matrix=lambda: estimate.float()))
     err = evaluate_robot(trainer, ev, 2).pose
     assert err == pytest.approx(pose_error(estimate, truth), abs=1e-5)
+
+
+def test_held_out_views_are_seen_through_the_camera_that_built_the_frame(views):
+    """An SfM focal length 2% short: the held-out views get the reference's (the swarm's field is
+    in its frame), a robot trained alone its own; known frames keep the truth's."""
+    r = split_views(views, SplitConfig(robots=2, overlap=0.2, holdout_every=5, images_only=True))
+    ev = EvalSet.from_split(r)
+    truth_k = ev.views.intrinsics.clone()
+    assert torch.equal(ev.shared_intrinsics(), truth_k)  # nothing calibrated yet
+    for rid, short in ((1, 0.98), (2, 0.95)):
+        rob = r.robots[rid]
+        sfm = _sfm_views(rob.views, _sim3(10 + rid, 1.0), rob.cameras_world)
+        half = Views(sfm.images[:, ::2, ::2], sfm.c2w, sfm.intrinsics * torch.tensor([short / 2, short / 2, 0.5, 0.5]),
+                     sfm.names)  # its SfM at half the evaluation's width
+        ev.calibrate(rid, half)
+    k = ev.shared_intrinsics()
+    assert torch.allclose(k[:, :2], 0.98 * truth_k[:, :2]) and torch.equal(k[:, 2:], truth_k[:, 2:])
+    assert torch.allclose(ev.shared_intrinsics(camera_of=2)[:, :2], 0.95 * truth_k[:, :2])
+    seen = []
+    trainer = SimpleNamespace(evaluate=lambda v, frame, with_ssim: seen.append(v.intrinsics) or
+                              {"psnr": [1.0] * len(v), "ssim": [1.0] * len(v)},
+                              pose=SimpleNamespace(matrix=lambda: ev.T_shared_from_local(2).float()))
+    out = evaluate_robot(trainer, ev, 2, compare_true_intrinsics=True)
+    assert torch.equal(seen[0], k) and torch.equal(seen[1], truth_k) and out.psnr_true_intrinsics is not None
+    known = EvalSet.from_split(split_views(views, SplitConfig(robots=2, frame="offset")))
+    assert torch.equal(known.shared_intrinsics(), known.views.intrinsics)
