@@ -83,7 +83,10 @@ class CameraRefineConfig:
 
 @dataclass
 class DepthConfig:
-    weight: float = 0.0  # gamma; 0 disables the depth term
+    # gamma, on the L1 depth error relative to the robot's median prior depth: an SfM prior is in
+    # units of its own arbitrary scale, so a weight on the raw error would mean something else on
+    # every robot. 0 disables the depth term.
+    weight: float = 0.0
     learn_affine: bool = True  # learn a per-image scale a_m and shift b_m of the prior
     lr: float = 1e-3
 
@@ -214,6 +217,8 @@ class RobotTrainer:
         self.c2w_local = views.c2w.to(dev).float()  # [M, 4, 4]
         self.intrinsics = views.intrinsics.to(dev).float()  # [M, 4]
         self.depth_prior = None if views.depth is None else views.depth.to(dev)  # [M, H, W]
+        known = None if self.depth_prior is None else self.depth_prior[self.depth_prior > 0]
+        self.depth_unit = float(known.median()) if known is not None and known.numel() else 1.0  # local units
         self.box_from_shared = box_from_shared.to(dev).float()
         self.generator = torch.Generator(device=dev).manual_seed(cfg.seed)
 
@@ -418,7 +423,7 @@ class RobotTrainer:
                 rendered_local = out.depth / scale
                 a = torch.exp(self.depth_log_scale[img])
                 target_depth = a * prior + self.depth_shift[img]
-                depth_loss = (rendered_local - target_depth).abs()[has].mean()
+                depth_loss = (rendered_local - target_depth).abs()[has].mean() / self.depth_unit
                 loss = loss + cfg.depth.weight * depth_loss
 
         self.optimizer.zero_grad(set_to_none=True)

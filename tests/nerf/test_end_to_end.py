@@ -204,3 +204,24 @@ def test_a_checkpoint_from_before_camera_refinement_still_loads():
     assert fresh.step == 2 and [g["name"] for g in fresh.optimizer.param_groups] == names
     assert all(torch.equal(a, b) for a, b in zip(fresh.field.parameters(), old.field.parameters()))
     fresh.train(1)  # and it trains on
+
+
+def test_the_depth_term_does_not_depend_on_the_scale_of_the_robots_frame():
+    """An SfM frame has an arbitrary scale, and so has its depth prior: the same robot in a frame
+    10x larger (cameras and depths x10, its pose scale 1/10) must see the same depth loss, or the
+    weight would mean something else on every robot."""
+    from dataclasses import replace
+
+    from agent.trainer import DepthConfig
+
+    views = load_views("procedural:views=8,width=16")  # exact depth
+    center, half, _ = estimate_scene_box(views)
+    box = box_from_center(center, half)
+    cfg = replace(small_config(10), depth=DepthConfig(weight=0.1))
+    big_c2w = views.c2w.clone()
+    big_c2w[:, :3, 3] *= 10.0
+    big = Views(views.images, big_c2w, views.intrinsics, list(views.names), views.depth * 10.0)
+    shrink = torch.diag(torch.tensor([0.1, 0.1, 0.1, 1.0]))  # big local frame -> the shared frame
+    losses = [RobotTrainer(v, cfg, box, initial_pose=pose).train_step()["depth_loss"]
+              for v, pose in ((views, torch.eye(4)), (big, shrink))]
+    assert losses[0] > 0 and losses[1] == pytest.approx(losses[0], rel=1e-4), losses
