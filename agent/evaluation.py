@@ -253,7 +253,7 @@ class RobotEval:
 
     @property
     def ssim_others(self) -> float:
-        return self._mean([self.ssim[i] for i in self.others_only])
+        return self._mean([self.ssim[i] for i in self.others_only]) if self.ssim else float("nan")  # [] = not computed
 
     def summary(self) -> dict[str, float]:
         return {

@@ -4,6 +4,7 @@ Sim(3) calibration of a robot's SfM frame on its cameras."""
 from __future__ import annotations
 
 import json
+import math
 from types import SimpleNamespace
 
 import pytest
@@ -161,3 +162,12 @@ def test_held_out_views_are_seen_through_the_camera_that_built_the_frame(views):
     assert torch.equal(seen[0], k) and torch.equal(seen[1], truth_k) and out.psnr_true_intrinsics is not None
     known = EvalSet.from_split(split_views(views, SplitConfig(robots=2, frame="offset")))
     assert torch.equal(known.shared_intrinsics(), known.views.intrinsics)
+
+
+def test_a_summary_without_ssim_has_none_instead_of_failing():
+    from agent.evaluation import RobotEval
+
+    ev = RobotEval(robot_id=1, psnr=[20.0, 22.0], ssim=[], others_only=[1], psnr_true_intrinsics=[18.0, 18.0])
+    s = ev.summary()
+    assert s["psnr"] == 21.0 and s["psnr_others_only"] == 22.0 and s["psnr_true_intrinsics"] == 18.0
+    assert math.isnan(s["ssim"]) and math.isnan(s["ssim_others_only"])
