@@ -273,9 +273,9 @@ class LastHeard:
     """When each direct peer last sent us anything (a heartbeat, a snapshot) or reappeared.
 
     A liveliness token is not proof that a peer can deliver: behind a cut link Zenoh dropped the
-    token of a peer 11 s and 21 s after the cut, with a 1 s lease (a CI run of the cut e2e test:
-    the closing socket of a link with unsent data lingers), and the barrier waited for it all
-    that time. A peer silent for longer than a few heartbeats is not worth waiting for, whatever
+    token of a peer 11 s and 21 s after the cut, with a 1 s lease (a CI run of the cut e2e test;
+    probably Zenoh's 10 s SO_LINGER on sockets that still held unsent data, not confirmed), and
+    the barrier waited for it all that time. A peer silent for longer than a few heartbeats is not worth waiting for, whatever
     its token says. Times are ``time.monotonic()``; pass ``now`` in tests. Thread-safe.
     """
 

@@ -127,8 +127,9 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
                 "rotation_error_deg": ev.pose.get("rotation_deg"), "translation_error": ev.pose.get("translation"),
                 "scale_error_rel": ev.pose.get("scale_rel"),
             }
-            for extra in ("psnr_pose_fitted", "psnr_true_intrinsics"):
-                if extra in (summary := ev.summary()):
+            summary = ev.summary()
+            for extra in ("psnr_pose_fitted", "psnr_true_intrinsics"):  # final round only
+                if extra in summary:
                     per_round[i][k][extra] = summary[extra]
             thetas[i] = [t for _, t in sorted(trainer.theta().items())]
             if final:
