@@ -543,6 +543,8 @@ class Daemon:
         wait out ``round_timeout_s``.
         """
 
+        given_up: set[int] = set()  # silent neighbours already reported for this barrier
+
         def awaited() -> set[int]:
             missing = {j for j in self._reachable_neighbours()
                        if (r := self.mailbox.newest_round(j)) is None or r <= round_index}
@@ -553,8 +555,6 @@ class Daemon:
                 self.log(f"[robot {self.robot_id}] round {round_index}: robot {j} sent nothing for "
                          f"{self.cfg.silent_after_s:.0f} s though its token is still seen; not waiting for it")
             return missing - silent
-
-        given_up: set[int] = set()
 
         t0 = time.monotonic()
         self._barrier_began = (round_index, t0)

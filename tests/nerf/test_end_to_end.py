@@ -177,7 +177,7 @@ def test_camera_refinement_undoes_misplaced_cameras_and_a_wrong_focal_length():
         trainer.train(500)
         scores[refine] = sum(trainer.evaluate(held, with_ssim=False)["psnr"]) / len(held)
         if refine:
-            focal = math.exp(float(trainer.log_focal))
+            focal = math.exp(float(trainer.log_focal.detach()))
             turned = trainer.refined_views().c2w
     err_before = rotation_angle_deg(wrong.c2w[:, :3, :3], train.c2w[:, :3, :3]).mean()
     err_after = rotation_angle_deg(turned[:, :3, :3], train.c2w[:, :3, :3]).mean()

@@ -200,7 +200,8 @@ def test_after_the_heal_the_swarm_is_in_step_again(cut_run):
         assert [r["round"] for r in recs] == list(range(1, CUT_ROUNDS + 1)), "rounds skipped"
         # No round waits long: before the transport fixes every cut cost a 5 s stall and most an
         # 8-10 s one (lingering socket closes); now the longest wait in 8 runs was 0.73 s. 5 s
-        # leaves room for one lost push and its pull.
+        # leaves room for one lost push and its pull, or for a token that outlives its link (the
+        # barrier gives up on a neighbour silent for daemon.silent_after_s, 3 s).
         assert all(r["seconds_wait"] < 5 for r in recs), [r["seconds_wait"] for r in recs]
 
 
