@@ -238,7 +238,9 @@ class RobotTrainer:
         refine = cfg.cameras.enabled
         self.view_phi = nn.Parameter(torch.zeros(m, 3, device=dev), requires_grad=refine)  # [M, 3]
         self.view_shift = nn.Parameter(torch.zeros(m, 3, device=dev), requires_grad=refine)  # [M, 3] box units
-        self.log_focal = nn.Parameter(torch.zeros((), device=dev), requires_grad=refine)
+        # a calibrated camera (agent.data.sfm's camera file) keeps its focal length
+        self.log_focal = nn.Parameter(torch.zeros((), device=dev),
+                                      requires_grad=refine and not views.meta.get("focal_calibrated", False))
 
         o = cfg.optim
         self.theta_names = [n for n, _ in self.field.named_parameters()]

@@ -29,6 +29,8 @@ def split(
     depth_prior: str = typer.Option("none", help="Depth written for robots: none | true | scaled (random a_m, b_m)."),
     max_scale: float = typer.Option(1.0, help="With --frame random: scale log-uniform in [1/x, x] (Sim(3)); 1 = SE(3)."),
     images_only: bool = typer.Option(False, help="Write robot images without poses (robots run their own SfM)."),
+    calibrated_cameras: bool = typer.Option(False, help="With --images-only: also write each robot's camera focal "
+                                            "length (camera.json), which its SfM then keeps fixed."),
     seed: int = typer.Option(0, help="Seed of the random frames and depth scale/shift."),
     force: bool = typer.Option(False, help="Replace a previous split in --out."),
     topology: str = typer.Option("full", help="Topology written to swarm.toml: full | ring | star | line."),
@@ -47,6 +49,7 @@ def split(
         depth_prior=depth_prior,  # type: ignore[arg-type]
         random_max_scale=max_scale,
         images_only=images_only,
+        calibrated_cameras=calibrated_cameras,
         seed=seed,
     )
     views = load_views(data, width=width)

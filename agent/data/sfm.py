@@ -34,7 +34,8 @@ import torch
 
 from agent.data.views import DataError, Views
 
-__all__ = ["SfmConfig", "run_sfm", "list_images", "read_image", "IMAGE_SUFFIXES"]
+__all__ = ["SfmConfig", "run_sfm", "list_images", "read_image", "read_camera_file", "write_camera_file",
+           "CAMERA_FILE", "IMAGE_SUFFIXES"]
 
 log = logging.getLogger(__name__)
 
@@ -136,6 +137,46 @@ def _resize(img: np.ndarray, width: int, height: int) -> np.ndarray:
 def _fit_size(width: int, height: int, max_side: int) -> tuple[int, int]:
     scale = min(1.0, max_side / max(width, height)) if max_side > 0 else 1.0
     return max(1, round(width * scale)), max(1, round(height * scale))
+
+
+# --------------------------------------------------------------------------------------------
+# A calibrated camera
+
+CAMERA_FILE = "camera.json"  # beside the images: the robot's camera calibration, if it has one
+
+
+def write_camera_file(folder: str | Path, focal_px: float, width: int, fixed: bool = True) -> Path:
+    """Record a robot's calibrated focal length (pixels at ``width``) for its SfM to use."""
+    path = Path(folder) / CAMERA_FILE
+    path.write_text(json.dumps({"focal_px": float(focal_px), "width": int(width), "fixed": bool(fixed)}, indent=2))
+    return path
+
+
+def read_camera_file(folder: str | Path) -> dict | None:
+    """The robot's camera calibration, or None when it has none.
+
+    A robot usually knows its camera (a factory or checkerboard calibration) even when it knows
+    none of its poses. SfM then starts from that focal length, and keeps it fixed unless the file
+    says ``"fixed": false``. Robots that each guess their own focal length end up 1-3% apart on
+    lego, which no Sim(3) between their frames can absorb.
+    """
+    path = Path(folder) / CAMERA_FILE
+    if not path.is_file():
+        return None
+    try:
+        raw = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise DataError(f"{path}: not readable JSON ({e})") from None
+    if not isinstance(raw, dict):
+        raise DataError(f"{path}: expected an object like {{\"focal_px\": 555.6, \"width\": 400}}")
+    focal, width, fixed = raw.get("focal_px"), raw.get("width"), raw.get("fixed", True)
+    if isinstance(focal, bool) or not isinstance(focal, (int, float)) or not np.isfinite(focal) or focal <= 0:
+        raise DataError(f"{path}: focal_px must be a positive number of pixels, got {focal!r}")
+    if isinstance(width, bool) or not isinstance(width, int) or width <= 0:
+        raise DataError(f"{path}: width must be the positive image width (pixels) focal_px refers to, got {width!r}")
+    if not isinstance(fixed, bool):
+        raise DataError(f"{path}: fixed must be true or false, got {fixed!r}")
+    return {"focal_px": float(focal), "width": width, "fixed": fixed}
 
 
 # --------------------------------------------------------------------------------------------
@@ -320,6 +361,15 @@ def _load(path: Path, key: str) -> dict | None:
 # Public entry point
 
 
+def _with_camera_file(config: SfmConfig, robot_dir: Path, files: list[Path]) -> SfmConfig:
+    """``config`` with the focal length of the robot's camera file, if it has one."""
+    cam = read_camera_file(robot_dir)
+    if cam is None or config.focal_px is not None:  # the caller's own calibration wins
+        return config
+    w = read_image(files[0]).shape[1]  # focal_px of SfmConfig is in pixels of the original images
+    return dataclasses.replace(config, focal_px=cam["focal_px"] * w / cam["width"], refine_focal=not cam["fixed"])
+
+
 def run_sfm(image_dir: str | Path, cache_dir: str | Path | None = None, *, width: int | None = None,
             config: SfmConfig = SfmConfig()) -> Views:
     """Poses, intrinsics and a sparse depth prior for a folder of images, from their own SfM.
@@ -330,13 +380,14 @@ def run_sfm(image_dir: str | Path, cache_dir: str | Path | None = None, *, width
     register, the SfM resolution, the point cloud (``sfm_points`` [N, 3]) and whether the cache hit.
     Raises :class:`DataError` when the folder has no images or too few of them register.
     """
-    image_dir = Path(image_dir)
+    image_dir = robot_dir = Path(image_dir)
     files = list_images(image_dir)
     if not files and (image_dir / "images").is_dir():  # the usual layout <robot>/images/*.png
         image_dir = image_dir / "images"
         files = list_images(image_dir)
     if not files:
         raise DataError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {image_dir}")
+    config = _with_camera_file(config, robot_dir, files)
     key = _cache_key(files, config)
 
     tmp_ctx = tempfile.TemporaryDirectory(prefix="dinerf-sfm-") if cache_dir is None else None
@@ -398,6 +449,7 @@ def run_sfm(image_dir: str | Path, cache_dir: str | Path | None = None, *, width
         "cache_hit": cache_hit,
         "depth_metric": True,  # the sparse depth lives in the same frame and scale as the poses
         "scale_known": False,  # SfM scale is arbitrary: relative poses must be Sim(3)
+        "focal_calibrated": config.focal_px is not None and not config.refine_focal,  # a known camera: keep it
     }
     return Views(
         images=torch.from_numpy(images.astype(np.float32)),

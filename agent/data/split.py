@@ -91,6 +91,7 @@ class SplitConfig:
     center: tuple[float, float, float] | None = None
     sector_start_deg: float = 0.0
     images_only: bool = False  # robot folders without poses (robots must run their own SfM)
+    calibrated_cameras: bool = False  # images_only: each robot folder also gets its camera's focal length
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -108,6 +109,8 @@ class SplitConfig:
                 raise DataError(f"{name} must be one of {list(allowed.__args__)}, got {getattr(self, name)!r}")
         if self.random_max_scale < 1.0:
             raise DataError(f"random_max_scale must be >= 1, got {self.random_max_scale}")
+        if self.calibrated_cameras and not self.images_only:
+            raise DataError("calibrated_cameras is for images_only robots (robots with poses have their intrinsics)")
         if self.images_only and self.depth_prior != "none":
             raise DataError("images_only robots have no transforms.json to carry a depth prior; use depth_prior='none'")
 
@@ -472,6 +475,10 @@ def write_split(result: SplitResult, out: str | Path, *, overwrite: bool = False
                 }
             },
         )
+        if cfg.calibrated_cameras:  # the camera's calibration, not a pose: what a robot knows of its camera
+            from agent.data.sfm import write_camera_file
+
+            write_camera_file(out / f"robot{rid}", float(rob.views.intrinsics[:, 0].median()), rob.views.width)
     if len(result.eval_indices):
         write_views_folder(
             result.eval_views,

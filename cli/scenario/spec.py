@@ -96,6 +96,9 @@ class SplitSpec:
     # Robots get images only, no poses: each runs its own SfM and its local frame is the SfM's
     # (needs daemon.initial_pose = "coarse" and training.train.pose.mode = "sim3").
     images_only: bool = False
+    # ... and each robot's folder a camera.json with its camera's focal length (a calibrated camera;
+    # its SfM keeps that focal length fixed). Off: every robot's SfM guesses its own.
+    calibrated_cameras: bool = False
     # Write the robots' images at this width, e.g. for their SfM, which needs more pixels than
     # training (training.image_width downscales them again); default: the scenario's width.
     # The held-out views and the centralised baseline stay at the scenario's width.
@@ -115,6 +118,7 @@ class SplitSpec:
             offset_rotation_deg=self.offset_rotation_deg,
             offset_translation=self.offset_translation,
             images_only=self.images_only,
+            calibrated_cameras=self.calibrated_cameras,
             seed=self.seed,
         )
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from agent import geometry as G
-from agent.data.sfm import SfmConfig, run_sfm
+from agent.data.sfm import CAMERA_FILE, SfmConfig, run_sfm, write_camera_file
 from agent.data.views import DataError
 from tests.align.scene import TexturedScene, render_views, ring_cameras, save_rgba
 
@@ -63,6 +63,48 @@ def test_sfm_on_rendered_views_recovers_poses_depth_and_caches(tmp_path):
     img[:10, :10] = 0
     cv2.imwrite(str(folder / "v003.png"), img)
     assert not run_sfm(folder, cache).meta["cache_hit"]
+
+
+def test_a_calibrated_camera_keeps_its_focal_length(tmp_path):
+    truth = render_views(TexturedScene(0), ring_cameras(np.arange(0, 120, 10)), 200, 150, 190.0)
+    robot = tmp_path / "robot"
+    save_rgba(truth, robot / "images")  # the split's layout: <robot>/images/*.png, <robot>/camera.json
+    write_camera_file(robot, focal_px=380.0, width=400)  # the calibration may be at another resolution
+    views = run_sfm(robot, tmp_path / "cache", width=100)
+    assert views.meta["focal_calibrated"] and len(views) == 12
+    assert torch.allclose(views.intrinsics[:, 0], torch.tensor(95.0))  # 380 px at 400 -> 95 at 100: kept exactly
+    rot, centre, _ = _aligned_errors(views.c2w, truth.c2w)
+    assert rot.max() < 1.5 and centre.max() < 0.1, (rot, centre)
+
+    # A trainer on such views does not refine the focal length, even with camera refinement on.
+    from agent.trainer import CameraRefineConfig, RobotTrainer, TrainConfig
+
+    box = G.box_from_center(torch.zeros(3), 2.0)
+    cfg = TrainConfig(cameras=CameraRefineConfig(enabled=True))
+    assert not RobotTrainer(views, cfg, box).log_focal.requires_grad
+    views.meta["focal_calibrated"] = False
+    assert RobotTrainer(views, cfg, box).log_focal.requires_grad
+
+    # Without the file SfM estimates the focal length itself (a new cache key, not the old result).
+    (robot / CAMERA_FILE).unlink()
+    free = run_sfm(robot, tmp_path / "cache", width=100)
+    assert not free.meta["cache_hit"] and not free.meta["focal_calibrated"]
+
+
+@pytest.mark.parametrize("text, match", [
+    ("not json", "not readable JSON"),
+    ("[1, 2]", "expected an object"),
+    ('{"focal_px": -3, "width": 400}', "focal_px must be a positive"),
+    ('{"focal_px": 500}', "width must be"),
+    ('{"focal_px": 500, "width": 400, "fixed": "yes"}', "fixed must be"),
+])
+def test_a_bad_camera_file_is_a_clear_error(tmp_path, text, match):
+    folder = tmp_path / "robot"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "a.png"), np.zeros((8, 8, 3), np.uint8))
+    (folder / CAMERA_FILE).write_text(text)
+    with pytest.raises(DataError, match=match):
+        run_sfm(folder, tmp_path / "cache")
 
 
 def test_sfm_errors_are_clear(tmp_path):

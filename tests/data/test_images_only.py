@@ -12,6 +12,7 @@ import torch
 
 from agent.data.folder import read_scene, read_truth
 from agent.data.procedural import ProceduralConfig, procedural_views
+from agent.data.sfm import read_camera_file
 from agent.data.split import SplitConfig, split_views, write_split
 from agent.data.views import DataError, Views
 from agent.evaluation import EvalSet, calibrate_frame, evaluate_robot
@@ -87,11 +88,23 @@ def test_images_only_split_writes_world_cameras_and_no_box(views, tmp_path):
         expect = views.c2w[rob.indices].double()
         got = torch.tensor([cams[n] for n in rob.views.names], dtype=torch.float64)
         assert torch.allclose(got, expect, atol=1e-5), "the true world cameras of the robot's own views"
+        assert read_camera_file(tmp_path / f"robot{rid}") is None, "an uncalibrated robot guesses its focal length"
 
     ev = EvalSet.from_dir(tmp_path)
     assert ev.needs_calibration and not ev.has_frame(1) and ev.box_from_world is not None
     with pytest.raises(DataError, match="calibrate it first"):
         ev.shared_cameras()
+
+
+def test_a_split_with_calibrated_cameras_gives_each_robot_its_focal_length_and_no_pose(views, tmp_path):
+    cfg = SplitConfig(robots=2, overlap=0.2, holdout_every=5, images_only=True, calibrated_cameras=True)
+    write_split(split_views(views, cfg), tmp_path)
+    for rid in (1, 2):
+        cam = read_camera_file(tmp_path / f"robot{rid}")
+        assert cam == {"focal_px": pytest.approx(float(views.intrinsics[0, 0])), "width": views.width, "fixed": True}
+        assert not (tmp_path / f"robot{rid}/transforms.json").exists()
+    with pytest.raises(DataError, match="calibrated_cameras is for images_only"):
+        SplitConfig(robots=2, calibrated_cameras=True)
 
 
 def test_evaluation_in_calibrated_sfm_frames(views):
