@@ -234,6 +234,7 @@ class RobotEval:
     pose: dict[str, float] = field(default_factory=dict)  # rotation_deg, translation, scale_rel
     psnr_pose_fitted: list[float] | None = None  # per held-out view, after fit_view_pose (if asked)
     psnr_true_intrinsics: list[float] | None = None  # per held-out view, with the truth's intrinsics (if asked)
+    psnr_own_views: list[float] | None = None  # per own training view scored (if asked): the field's fit
 
     @staticmethod
     def _mean(values: list[float]) -> float:
@@ -264,6 +265,7 @@ class RobotEval:
             **({"psnr_pose_fitted": self._mean(self.psnr_pose_fitted)} if self.psnr_pose_fitted is not None else {}),
             **({"psnr_true_intrinsics": self._mean(self.psnr_true_intrinsics)}
                if self.psnr_true_intrinsics is not None else {}),
+            **({"psnr_own_views": self._mean(self.psnr_own_views)} if self.psnr_own_views is not None else {}),
             **{f"pose_{k}": v for k, v in self.pose.items()},
         }
 
@@ -312,7 +314,7 @@ def fit_view_pose(trainer, c2w: Tensor, intrinsics: Tensor, image: Tensor, steps
 
 def evaluate_robot(trainer, evalset: EvalSet, robot_id: int, with_ssim: bool = True,
                    pose_fit_steps: int = 0, compare_true_intrinsics: bool = False,
-                   camera_of: int | None = None) -> RobotEval:
+                   camera_of: int | None = None, own_views_every: int = 0) -> RobotEval:
     """Render every held-out view with this robot's field in the shared frame; compare to truth.
 
     The pose error is taken in the world frame (``T_world_from_shared @ T_i`` against
@@ -338,6 +340,7 @@ def evaluate_robot(trainer, evalset: EvalSet, robot_id: int, with_ssim: bool = T
                             for m in range(len(shared))])
         moved = Views(images=shared.images, c2w=cams.cpu(), intrinsics=shared.intrinsics, names=shared.names)
         fitted = trainer.evaluate(moved, frame="shared", with_ssim=False)["psnr"]
+    own = trainer.own_views_psnr(own_views_every) if own_views_every > 0 else None
     estimate = trainer.pose.matrix().detach().double().cpu()
     return RobotEval(
         robot_id=robot_id,
@@ -347,4 +350,5 @@ def evaluate_robot(trainer, evalset: EvalSet, robot_id: int, with_ssim: bool = T
         pose=pose_error(evalset.world_from_local(evalset.reference_id) @ estimate, evalset.world_from_local(robot_id)),
         psnr_pose_fitted=fitted,
         psnr_true_intrinsics=true_k,
+        psnr_own_views=own,
     )

@@ -489,6 +489,21 @@ class RobotTrainer:
                 out["ssim"].append(ssim(pred, gt[i]))
         return out
 
+    @torch.no_grad()
+    def own_views_psnr(self, every: int = 4) -> list[float]:
+        """PSNR on every ``every``-th of the robot's own training views, through its refined cameras.
+
+        How well the field fits what this robot saw. Alone, a robot fits its views whatever its
+        cameras' errors, as long as they agree with each other; in a swarm the field must also
+        agree with the others' cameras, so a low figure here says the robots' frames disagree.
+        """
+        sel = list(range(0, len(self.views), max(int(every), 1)))
+        cams = self.cameras_shared()[sel].cpu()  # [S, 4, 4]
+        k = self.camera_intrinsics()[sel].cpu()  # [S, 4]
+        v = self.views
+        mine = Views(images=v.images[sel], c2w=cams, intrinsics=k, names=[v.names[j] for j in sel])
+        return self.evaluate(mine, frame="shared", with_ssim=False)["psnr"]
+
     # --- checkpoints ---------------------------------------------------------------------------
     def state_dict(self) -> dict:
         return {

@@ -120,7 +120,7 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
             if fit_steps:
                 echo(f"[report] robot {i}: fitting each held-out view's pose to its image ({fit_steps} steps each)")
             ev = evaluate_robot(trainer, evalset, i, with_ssim=spec.report.ssim, pose_fit_steps=fit_steps,
-                                compare_true_intrinsics=final)
+                                compare_true_intrinsics=final, own_views_every=spec.report.own_views_every if final else 0)
             per_round[i][k] = {
                 "psnr": ev.psnr_all, "ssim": ev.ssim_all if spec.report.ssim else None,
                 "psnr_others_only": ev.psnr_others, "ssim_others_only": ev.ssim_others if spec.report.ssim else None,
@@ -128,7 +128,7 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
                 "scale_error_rel": ev.pose.get("scale_rel"),
             }
             summary = ev.summary()
-            for extra in ("psnr_pose_fitted", "psnr_true_intrinsics"):  # final round only
+            for extra in ("psnr_pose_fitted", "psnr_true_intrinsics", "psnr_own_views"):  # final round only
                 if extra in summary:
                     per_round[i][k][extra] = summary[extra]
             thetas[i] = [t for _, t in sorted(trainer.theta().items())]
@@ -497,6 +497,11 @@ def _markdown(report: dict, spec: ScenarioSpec, ids: list[int]) -> str:
         lines += [f"With each held-out view's pose fitted to its image through the robot's frozen field "
                   f"({spec.report.fit_heldout_poses_steps} steps; the test-time pose optimisation of pose-free NeRF "
                   f"evaluation): PSNR all " + ", ".join(f"robot {i} {_f(v)}" for i, v in fitted.items()) + " dB.", ""]
+    own = {i: report["robots"][str(i)]["final"].get("psnr_own_views") for i in ids}
+    if any(v is not None for v in own.values()):
+        lines += [f"Fit of each robot's own training views (one in {spec.report.own_views_every}, through its own "
+                  "cameras as it refined them; one field for all robots cannot fit views whose cameras disagree): PSNR "
+                  + ", ".join(f"robot {i} {_f(v)}" for i, v in own.items()) + " dB.", ""]
     as_truth = {i: report["robots"][str(i)]["final"].get("psnr_true_intrinsics") for i in ids}
     if any(v is not None for v in as_truth.values()):
         lines += ["The held-out views are rendered through the shared frame's camera: the reference's focal length as "

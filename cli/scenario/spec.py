@@ -233,10 +233,15 @@ class ReportSpec:
     # Also score each robot's final model with every held-out view's pose fitted to its image
     # (agent.evaluation.fit_view_pose), as pose-free NeRF is evaluated; 0 = off. For SfM frames.
     fit_heldout_poses_steps: int = 0
+    # Also score each robot's final field on every k-th of its own training views, through its own
+    # (refined) cameras: below what the robot reaches alone, the robots' frames disagree. 0 = off.
+    own_views_every: int = 4
 
     def __post_init__(self) -> None:
-        if self.eval_every < 1 or self.render_views < 0 or self.threads < 1 or self.fit_heldout_poses_steps < 0:
-            raise ValueError("report: eval_every >= 1, render_views >= 0, threads >= 1, fit_heldout_poses_steps >= 0")
+        if (self.eval_every < 1 or self.render_views < 0 or self.threads < 1 or self.fit_heldout_poses_steps < 0
+                or self.own_views_every < 0):
+            raise ValueError("report: eval_every >= 1, render_views >= 0, threads >= 1, fit_heldout_poses_steps >= 0, "
+                             "own_views_every >= 0")
 
 
 @dataclass

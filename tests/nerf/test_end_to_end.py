@@ -151,6 +151,26 @@ def test_fit_view_pose_undoes_a_misplaced_held_out_camera():
     assert score(fitted) > score(truth) - 1.0
 
 
+def test_own_views_psnr_scores_the_robots_views_through_its_refined_cameras():
+    """The report's fit-of-own-views figure: one in k training views, seen through the cameras as
+    refined; cameras that disagree with the field (here turned 2 deg after training) score lower."""
+    views = load_views("procedural:views=24,width=32")
+    center, half, _ = estimate_scene_box(views)
+    cfg = small_config(300)
+    cfg.cameras = CameraRefineConfig(enabled=True, start_step=10_000)  # on, but never moving during training
+    trainer = RobotTrainer(views, cfg, box_from_center(center, half))
+    trainer.train(300)
+    own = trainer.own_views_psnr(every=5)
+    assert len(own) == 5  # views 0, 5, 10, 15, 20
+    direct = trainer.evaluate(views.subset([0, 5, 10, 15, 20]), with_ssim=False)["psnr"]
+    assert own == pytest.approx(direct, abs=1e-3)
+    with torch.no_grad():
+        trainer.view_phi[:, 1] = math.radians(2.0)
+    turned = trainer.own_views_psnr(every=5)
+    print(f"own views {sum(own) / 5:.2f} dB, cameras turned 2 deg {sum(turned) / 5:.2f} dB")
+    assert sum(turned) / 5 < sum(own) / 5 - 2.0
+
+
 @pytest.mark.slow
 def test_camera_refinement_undoes_misplaced_cameras_and_a_wrong_focal_length():
     """Training cameras each turned by ~1 deg and a focal length 4% long (what a robot's own SfM

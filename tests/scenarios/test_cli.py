@@ -96,11 +96,12 @@ def test_tiny_run_on_loopback_writes_the_report(tmp_path):
     for i in ("1", "2"):
         r = report["robots"][i]
         assert r["final_round"] == 3 and r["final"]["psnr"] > 5 and r["rounds_logged"] == 3
+        assert r["final"]["psnr_own_views"] > 5 and "psnr_own_views" not in r["rounds"]["2"]  # final round only
         assert set(r["rounds"]) == {"1", "2", "3"}
     assert report["links_bytes"]["1->2"] > 0 and report["links_bytes"]["2->1"] > 0
     assert report["baseline"]["centralised"]["psnr"] > 5 and set(report["baseline"]["alone"]) == {"1", "2"}
     md = (out / "report.md").read_text()
-    assert "| robot | round | PSNR all" in md and "Centralised model" in md
+    assert "| robot | round | PSNR all" in md and "Centralised model" in md and "Fit of each robot's own training views" in md
     for png in ("convergence.png", "renders.png"):
         assert (out / png).read_bytes()[:4] == b"\x89PNG"
     again = agent("scenario", "run", str(scen), "--out", str(out))
