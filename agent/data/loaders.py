@@ -670,6 +670,8 @@ def _load_images_only(folder: Path, images: list[Path], *, width: int | None, ca
     kwargs: dict[str, Any] = {"width": width} if "width" in params else {}
     if cache_dir is not None and "cache_dir" in params:
         kwargs["cache_dir"] = cache_dir
+        if "keep_frame" in params:  # the run's own SfM is the robot's frame: never silently redone
+            kwargs["keep_frame"] = True
     result = run(folder, **kwargs)
     if isinstance(result, Views):
         return resize_views(result, width) if width is not None and width != result.width else result

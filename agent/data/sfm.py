@@ -183,15 +183,28 @@ def read_camera_file(folder: str | Path) -> dict | None:
 # Cache
 
 
-def _cache_key(files: list[Path], config: SfmConfig) -> str:
+def _file_digests(files: list[Path]) -> list[tuple[str, bytes]]:
+    return [(f.name, hashlib.sha256(f.read_bytes()).digest()) for f in files]
+
+
+def _images_key(digests: list[tuple[str, bytes]]) -> str:
+    """The images alone (names and bytes): what a robot's SfM frame is made of."""
+    h = hashlib.sha256(b"images;")
+    for name, digest in digests:
+        h.update(name.encode() + b"\0" + digest)
+    return h.hexdigest()
+
+
+def _cache_key(digests: list[tuple[str, bytes]], config: SfmConfig) -> str:
+    """The images, the settings and the COLMAP version: any change recomputes (unless keep_frame)."""
     import pycolmap
 
     h = hashlib.sha256()
     h.update(f"format={_CACHE_FORMAT};pycolmap={pycolmap.__version__};".encode())
     h.update(json.dumps(dataclasses.asdict(config), sort_keys=True).encode())
-    for f in files:
-        h.update(f.name.encode() + b"\0")
-        h.update(hashlib.sha256(f.read_bytes()).digest())
+    for name, digest in digests:
+        h.update(name.encode() + b"\0")
+        h.update(digest)
     return h.hexdigest()
 
 
@@ -333,23 +346,28 @@ def _reconstruct(files: list[Path], work: Path, config: SfmConfig) -> dict:
     }
 
 
-def _save(path: Path, key: str, res: dict) -> None:
+def _save(path: Path, key: str, images_key: str, res: dict) -> None:
     arrays = {k: v for k, v in res.items() if isinstance(v, np.ndarray)}
     info = {k: v for k, v in res.items() if not isinstance(v, np.ndarray)}
     tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, key=np.array(key), info=np.array(json.dumps(info)), **arrays)
+    np.savez(tmp, key=np.array(key), images_key=np.array(images_key), info=np.array(json.dumps(info)), **arrays)
     tmp.replace(path)
 
 
-def _load(path: Path, key: str) -> dict | None:
+def _load(path: Path, key: str, images_key: str | None = None) -> dict | None:
+    """The cached result for ``key``; with ``images_key``, also one of the same images made with other
+    settings (``res["settings_changed"]``)."""
     if not path.exists():
         return None
     try:
         with np.load(path) as z:
-            if str(z["key"]) != key:
+            same_images = images_key is not None and "images_key" in z.files and str(z["images_key"]) == images_key
+            if str(z["key"]) != key and not same_images:
                 return None
             res = json.loads(str(z["info"]))
-            res.update({k: z[k] for k in z.files if k not in ("key", "info")})
+            res["settings_changed"] = str(z["key"]) != key
+            res["has_images_key"] = "images_key" in z.files
+            res.update({k: z[k] for k in z.files if k not in ("key", "images_key", "info")})
     except (OSError, ValueError, KeyError) as exc:  # a damaged cache is recomputed, not fatal
         log.warning("ignoring unreadable SfM cache %s: %s", path, exc)
         return None
@@ -371,7 +389,7 @@ def _with_camera_file(config: SfmConfig, robot_dir: Path, files: list[Path]) -> 
 
 
 def run_sfm(image_dir: str | Path, cache_dir: str | Path | None = None, *, width: int | None = None,
-            config: SfmConfig = SfmConfig()) -> Views:
+            config: SfmConfig = SfmConfig(), keep_frame: bool = False) -> Views:
     """Poses, intrinsics and a sparse depth prior for a folder of images, from their own SfM.
 
     Returns the registered images only, at their original size (or ``width`` pixels wide), with
@@ -379,6 +397,12 @@ def run_sfm(image_dir: str | Path, cache_dir: str | Path | None = None, *, width
     the triangulated points each image observes (0 elsewhere). ``meta`` says which images did not
     register, the SfM resolution, the point cloud (``sfm_points`` [N, 3]) and whether the cache hit.
     Raises :class:`DataError` when the folder has no images or too few of them register.
+
+    ``keep_frame``: a result cached in ``cache_dir`` for these same images is used even if it was
+    made with other settings (another version of this code, a new option). A robot's SfM is its
+    local frame: its checkpoint (relative pose, per-view camera corrections) and its report are
+    only valid in the frame it trained in, and a second SfM run is not that frame, even with the
+    same settings (COLMAP on 2 threads is not bit-reproducible).
     """
     image_dir = robot_dir = Path(image_dir)
     files = list_images(image_dir)
@@ -388,20 +412,28 @@ def run_sfm(image_dir: str | Path, cache_dir: str | Path | None = None, *, width
     if not files:
         raise DataError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {image_dir}")
     config = _with_camera_file(config, robot_dir, files)
-    key = _cache_key(files, config)
+    digests = _file_digests(files)
+    images_key, key = _images_key(digests), _cache_key(digests, config)
 
+    settings_changed = False
     tmp_ctx = tempfile.TemporaryDirectory(prefix="dinerf-sfm-") if cache_dir is None else None
     work = Path(tmp_ctx.name) if tmp_ctx is not None else Path(cache_dir)
     try:
         work.mkdir(parents=True, exist_ok=True)
         result_path = work / "sfm_result.npz"
         t0 = time.perf_counter()
-        res = _load(result_path, key)
+        res = _load(result_path, key, images_key if keep_frame else None)
         cache_hit = res is not None
         if res is None:
             res = _reconstruct(files, work, config)
             res["seconds"] = time.perf_counter() - t0
-            _save(result_path, key, res)
+            _save(result_path, key, images_key, res)
+        elif not res.pop("has_images_key"):  # a cache from before images_key: add it, keep_frame needs it
+            _save(result_path, key, images_key, {k: v for k, v in res.items() if k != "settings_changed"})
+        if cache_hit and res.pop("settings_changed"):
+            log.warning("%s: keeping the SfM cached in %s, made with other settings: it is the frame this robot "
+                        "trained in", image_dir, work)
+            settings_changed = True
     finally:
         if tmp_ctx is not None:
             tmp_ctx.cleanup()
@@ -447,6 +479,7 @@ def run_sfm(image_dir: str | Path, cache_dir: str | Path | None = None, *, width
         "sfm_mean_reproj_error": float(res.get("mean_reproj_error", float("nan"))),
         "sfm_points": np.asarray(res["points"], dtype=np.float32),
         "cache_hit": cache_hit,
+        "sfm_settings_changed": settings_changed,  # keep_frame reused an SfM made with other settings
         "depth_metric": True,  # the sparse depth lives in the same frame and scale as the poses
         "scale_known": False,  # SfM scale is arbitrary: relative poses must be Sim(3)
         "focal_calibrated": config.focal_px is not None and not config.refine_focal,  # a known camera: keep it

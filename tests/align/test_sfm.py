@@ -91,6 +91,48 @@ def test_a_calibrated_camera_keeps_its_focal_length(tmp_path):
     assert not free.meta["cache_hit"] and not free.meta["focal_calibrated"]
 
 
+def test_a_robots_sfm_frame_survives_a_change_of_settings(tmp_path):
+    """keep_frame (the run's own SfM, as the daemon and the report load it): new settings, e.g. from
+    a newer version of this code, reuse the SfM the robot trained in instead of making another
+    frame under its checkpoint; new images still recompute."""
+    truth = render_views(TexturedScene(0), ring_cameras(np.arange(0, 120, 10)), 200, 150, 190.0)
+    folder = tmp_path / "robot"
+    save_rgba(truth, folder)
+    cache = tmp_path / "cache"
+    first = run_sfm(folder, cache)
+    other = SfmConfig(max_num_features=3000)
+    kept = run_sfm(folder, cache, config=other, keep_frame=True)
+    assert kept.meta["cache_hit"] and kept.meta["sfm_settings_changed"]
+    assert torch.equal(kept.c2w, first.c2w)
+    same = run_sfm(folder, cache, keep_frame=True)
+    assert same.meta["cache_hit"] and not same.meta["sfm_settings_changed"]
+    assert not run_sfm(folder, cache, config=other).meta["cache_hit"]  # without keep_frame: the new settings
+    img = cv2.imread(str(folder / "v003.png"), cv2.IMREAD_UNCHANGED)
+    img[:10, :10] = 0
+    cv2.imwrite(str(folder / "v003.png"), img)
+    assert not run_sfm(folder, cache, config=other, keep_frame=True).meta["cache_hit"]
+
+
+def test_images_only_folders_load_with_their_run_s_sfm_kept(tmp_path, monkeypatch):
+    """load_views(..., sfm_cache_dir=...) is how the daemon and the report load a robot: it keeps the frame."""
+    import agent.data.sfm as sfm
+    from agent.data.loaders import load_views
+
+    seen = {}
+
+    def fake(image_dir, cache_dir=None, *, width=None, config=SfmConfig(), keep_frame=False):
+        seen.update(cache_dir=cache_dir, keep_frame=keep_frame)
+        raise DataError("stop here")
+
+    monkeypatch.setattr(sfm, "run_sfm", fake)
+    folder = tmp_path / "robot" / "images"
+    folder.mkdir(parents=True)
+    cv2.imwrite(str(folder / "a.png"), np.zeros((8, 8, 3), np.uint8))
+    with pytest.raises(DataError, match="stop here"):
+        load_views(tmp_path / "robot", sfm_cache_dir=tmp_path / "cache")
+    assert seen == {"cache_dir": tmp_path / "cache", "keep_frame": True}
+
+
 @pytest.mark.parametrize("text, match", [
     ("not json", "not readable JSON"),
     ("[1, 2]", "expected an object"),
