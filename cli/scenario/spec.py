@@ -13,6 +13,7 @@ error that names it. Example (every table but ``[scenario]`` is optional)::
     overlap = 0.1
     frame = "offset"
     # images_only = true                       # robots get no poses (own SfM); robot_image_width = 400
+    # calibrated_cameras = true                # ... but each knows its camera's focal length (camera.json)
 
     [topology]
     kind = "ring"                              # full | ring | star | line | edges (+ edges = [[1, 2]], hub = 1)
