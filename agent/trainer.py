@@ -498,11 +498,7 @@ class RobotTrainer:
         agree with the others' cameras, so a low figure here says the robots' frames disagree.
         """
         sel = list(range(0, len(self.views), max(int(every), 1)))
-        cams = self.cameras_shared()[sel].cpu()  # [S, 4, 4]
-        k = self.camera_intrinsics()[sel].cpu()  # [S, 4]
-        v = self.views
-        mine = Views(images=v.images[sel], c2w=cams, intrinsics=k, names=[v.names[j] for j in sel])
-        return self.evaluate(mine, frame="shared", with_ssim=False)["psnr"]
+        return self.evaluate(self.refined_views().subset(sel), with_ssim=False)["psnr"]
 
     # --- checkpoints ---------------------------------------------------------------------------
     def state_dict(self) -> dict:
