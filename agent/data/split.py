@@ -280,14 +280,24 @@ def offset_transform(rotation_deg: tuple[float, float, float], translation: tupl
     return out
 
 
+DEPTH_BOX_QUANTILE = 0.01  # per axis, each side: sparse SfM depth has outliers far from the scene
+DEPTH_BOX_PADDING = 0.2  # of the quantile bounds' largest extent
+
+
 def estimate_scene_box(views: Views) -> tuple[Tensor, float, str]:
     """The world box of the scene: (centre [3], half-size, where it came from).
 
     In order of trust: ``meta['scene_box_world']`` (the procedural scene knows it exactly; a json
-    may carry it); the bounds of the depth unprojected into the world (2nd-98th percentile per
-    axis, padded by 10%); else the cameras: centre of the optical axes and the half-width of the
+    may carry it); the bounds of the depth unprojected into the world (1st-99th percentile per
+    axis, padded by 20%); else the cameras: centre of the optical axes and the half-width of the
     median frustum at that distance (for the Blender scenes this gives ~1.45, close to the
     customary [-1.5, 1.5]^3).
+
+    The depth bounds must not clip the object: a box that cuts off its extremities leaves them
+    unrenderable. The 2nd-98th percentile padded by 10% cut 1.4% of lego's SfM points inside the
+    true box; an images-only swarm on it fitted its own training views at 29.93 / 32.16 dB, and at
+    32.67 / 33.44 in the true box (same true cameras, one in-process run each). With this rule the
+    box is as large as the true one (half-size 1.45) and cuts 0.04%.
     """
     box = views.meta.get("scene_box_world")
     if isinstance(box, dict) and "center" in box and "half_size" in box:
@@ -307,8 +317,8 @@ def estimate_scene_box(views: Views) -> tuple[Tensor, float, str]:
         p = torch.cat(pts)
         if len(p) > 200_000:
             p = p[torch.randperm(len(p), generator=torch.Generator().manual_seed(0))[:200_000]]
-        lo, hi = torch.quantile(p, 0.02, dim=0), torch.quantile(p, 0.98, dim=0)
-        return 0.5 * (lo + hi), float(0.55 * (hi - lo).max()), "depth"
+        lo, hi = torch.quantile(p, DEPTH_BOX_QUANTILE, dim=0), torch.quantile(p, 1 - DEPTH_BOX_QUANTILE, dim=0)
+        return 0.5 * (lo + hi), float(0.5 * (1 + DEPTH_BOX_PADDING) * (hi - lo).max()), "depth"
     center = scene_center(views.c2w)
     dist = (views.c2w[:, :3, 3].to(torch.float64) - center).norm(dim=-1)
     half_fov = torch.minimum(
