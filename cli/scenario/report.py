@@ -500,8 +500,8 @@ def _markdown(report: dict, spec: ScenarioSpec, ids: list[int]) -> str:
     own = {i: report["robots"][str(i)]["final"].get("psnr_own_views") for i in ids}
     if any(v is not None for v in own.values()):
         lines += [f"Fit of each robot's own training views (one in {spec.report.own_views_every}, through its own "
-                  "cameras, as refined if it refines them; well below what it reaches alone, the robots' cameras "
-                  "disagree and no one field fits them all): PSNR "
+                  "cameras, as refined if it refines them; a shared field that cannot fit every robot's views, "
+                  "from cameras that disagree or a box that clips the scene, shows here first): PSNR "
                   + ", ".join(f"robot {i} {_f(v)}" for i, v in own.items()) + " dB.", ""]
     as_truth = {i: report["robots"][str(i)]["final"].get("psnr_true_intrinsics") for i in ids}
     if any(v is not None for v in as_truth.values()):
