@@ -495,7 +495,9 @@ class RobotTrainer:
 
         How well the field fits what this robot saw. Alone, a robot fits its views whatever its
         cameras' errors, as long as they agree with each other; in a swarm the field must also
-        agree with the others' cameras, so a low figure here says the robots' frames disagree.
+        agree with the others' cameras and live in the swarm's box. A low figure next to a robot
+        alone says the shared field cannot hold this robot's views (on lego: a box that clipped
+        the scene, see ``estimate_scene_box``).
         """
         sel = list(range(0, len(self.views), max(int(every), 1)))
         return self.evaluate(self.refined_views().subset(sel), with_ssim=False)["psnr"]
