@@ -33,6 +33,7 @@ __all__ = [
     "sim3_inverse",
     "transform_points",
     "transform_c2w",
+    "unproject_depth",
     "rotation_angle_deg",
     "pose_error",
     "umeyama",
@@ -149,6 +150,19 @@ def sim3_inverse(transform: Tensor) -> Tensor:
 def transform_points(transform: Tensor, points: Tensor) -> Tensor:
     """``x -> s R x + t``.  transform: [4, 4], points: [N, 3] -> [N, 3]."""
     return points @ transform[:3, :3].transpose(0, 1) + transform[:3, 3]
+
+
+def unproject_depth(depth: Tensor, intrinsics: Tensor, c2w: Tensor) -> Tensor:
+    """The pixels with a known z-depth as points in the camera's frame (OpenGL camera, pixel centres).
+
+    depth: [H, W] (0 = unknown), intrinsics: [4] fx, fy, cx, cy, c2w: [4, 4] -> [N, 3] float64.
+    """
+    d = depth.to(torch.float64)
+    rows, cols = torch.nonzero(d > 0, as_tuple=True)
+    fx, fy, cx, cy = intrinsics.to(torch.float64)
+    z = d[rows, cols]
+    cam = torch.stack([(cols + 0.5 - cx) / fx * z, -(rows + 0.5 - cy) / fy * z, -z], -1)  # [N, 3]
+    return transform_points(c2w.to(torch.float64), cam)
 
 
 def transform_c2w(transform: Tensor, c2w: Tensor) -> Tensor:

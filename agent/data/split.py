@@ -51,7 +51,15 @@ from torch import Tensor
 
 from agent.data.folder import matrix_to_list, write_json, write_views_folder
 from agent.data.views import DataError, Views
-from agent.geometry import box_from_center, random_rotation, sim3_decompose, sim3_inverse, so3_exp, transform_c2w
+from agent.geometry import (
+    box_from_center,
+    random_rotation,
+    sim3_decompose,
+    sim3_inverse,
+    so3_exp,
+    transform_c2w,
+    unproject_depth,
+)
 
 __all__ = [
     "SplitConfig",
@@ -303,18 +311,7 @@ def estimate_scene_box(views: Views) -> tuple[Tensor, float, str]:
     if isinstance(box, dict) and "center" in box and "half_size" in box:
         return torch.tensor(box["center"], dtype=torch.float64), float(box["half_size"]), "dataset"
     if views.depth is not None and bool((views.depth > 0).any()):
-        pts = []
-        for i in range(len(views)):
-            d = views.depth[i].to(torch.float64)
-            rows, cols = torch.nonzero(d > 0, as_tuple=True)
-            if len(rows) == 0:
-                continue
-            fx, fy, cx, cy = views.intrinsics[i].to(torch.float64)
-            z = d[rows, cols]
-            cam = torch.stack([(cols + 0.5 - cx) / fx * z, -(rows + 0.5 - cy) / fy * z, -z], -1)
-            c2w = views.c2w[i].to(torch.float64)
-            pts.append(cam @ c2w[:3, :3].T + c2w[:3, 3])
-        p = torch.cat(pts)
+        p = torch.cat([unproject_depth(views.depth[i], views.intrinsics[i], views.c2w[i]) for i in range(len(views))])
         if len(p) > 200_000:
             p = p[torch.randperm(len(p), generator=torch.Generator().manual_seed(0))[:200_000]]
         lo, hi = torch.quantile(p, DEPTH_BOX_QUANTILE, dim=0), torch.quantile(p, 1 - DEPTH_BOX_QUANTILE, dim=0)

@@ -64,16 +64,9 @@ def test_the_box_from_a_robots_sfm_depth_does_not_clip_lego(tmp_path, lego):
 
     centre, half, source = estimate_scene_box(views)
     assert source == "depth"
-    points = []  # [N, 3] the sparse depth unprojected, SfM frame
-    for k in range(len(views)):
-        d = views.depth[k].double()
-        rows, cols = torch.nonzero(d > 0, as_tuple=True)
-        fx, fy, cx, cy = views.intrinsics[k].double()
-        z = d[rows, cols]
-        cam = torch.stack([(cols + 0.5 - cx) / fx * z, -(rows + 0.5 - cy) / fy * z, -z], -1)
-        points.append(cam @ views.c2w[k].double()[:3, :3].T + views.c2w[k].double()[:3, 3])
-    points = torch.cat(points)
-    world = points @ world_from_sfm[:3, :3].T + world_from_sfm[:3, 3]
+    points = torch.cat([G.unproject_depth(views.depth[k], views.intrinsics[k], views.c2w[k])
+                        for k in range(len(views))])  # [N, 3] the sparse depth, SfM frame
+    world = G.transform_points(world_from_sfm, points)
     in_true_box = (world.abs() <= 1.5).all(dim=1)  # the customary Blender box
     in_estimate = ((points - centre).abs() <= half).all(dim=1)
     clipped = float((in_true_box & ~in_estimate).sum() / in_true_box.sum())

@@ -21,7 +21,12 @@ from agent.data.split import (
     write_split,
 )
 from agent.data.views import DataError, Views
-from agent.geometry import sim3_decompose, transform_c2w, transform_points
+from agent.geometry import (
+    sim3_decompose,
+    transform_c2w,
+    transform_points,
+    unproject_depth,
+)
 
 
 @pytest.fixture(scope="module")
@@ -171,11 +176,7 @@ def test_scene_box_maps_the_world_box_into_the_unit_cube(views, tmp_path, frame)
     for rid, rob in r.robots.items():
         v = rob.views
         for i in range(0, len(v), 5):
-            rows, cols = torch.nonzero(v.depth[i] > 0, as_tuple=True)
-            z = v.depth[i][rows, cols].double()
-            fx, fy, cx, cy = v.intrinsics[i].double()
-            cam = torch.stack([(cols + 0.5 - cx) / fx * z, -(rows + 0.5 - cy) / fy * z, -z], -1)
-            local = transform_points(v.c2w[i].double(), cam)
+            local = unproject_depth(v.depth[i], v.intrinsics[i], v.c2w[i])
             box = transform_points(scene.box_from_shared @ t_shared[rid], local)
             assert float(box.abs().max()) <= 1.0 + 1e-4
 

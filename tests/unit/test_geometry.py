@@ -126,3 +126,16 @@ def test_look_at_follows_opengl_convention():
     assert torch.allclose(c2w[:3, 1], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
     with pytest.raises(ValueError):
         G.look_at(torch.tensor([0.0, 0.0, 4.0]), torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))
+
+
+def test_unproject_depth_lands_each_pixel_on_the_point_it_sees():
+    """A camera 4 units from a wall: every pixel with depth lands on the wall, where its ray meets it."""
+    c2w = G.look_at(torch.tensor([0.0, -4.0, 0.0]), torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))
+    intrinsics = torch.tensor([10.0, 10.0, 4.0, 3.0])  # fx, fy, cx, cy of an 8 x 6 image
+    depth = torch.full((6, 8), 4.0)
+    depth[0, 0] = 0.0  # unknown: skipped
+    points = G.unproject_depth(depth, intrinsics, c2w)  # [47, 3]
+    assert points.shape == (47, 3) and points.dtype == torch.float64
+    assert torch.allclose(points[:, 1], torch.zeros(47, dtype=torch.float64), atol=1e-12)  # on the wall y = 0
+    # pixel (row 5, col 7): 3.5 px right of and 2.5 px below the centre, at 4 units through fx = 10
+    assert torch.allclose(points[-1], torch.tensor([1.4, 0.0, -1.0], dtype=torch.float64), atol=1e-12)
