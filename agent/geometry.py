@@ -153,7 +153,7 @@ def transform_points(transform: Tensor, points: Tensor) -> Tensor:
 
 
 def unproject_depth(depth: Tensor, intrinsics: Tensor, c2w: Tensor) -> Tensor:
-    """The pixels with a known z-depth as points in the camera's frame (OpenGL camera, pixel centres).
+    """The pixels with a known z-depth as 3-D points in the frame ``c2w`` maps into (OpenGL camera, pixel centres).
 
     depth: [H, W] (0 = unknown), intrinsics: [4] fx, fy, cx, cy, c2w: [4, 4] -> [N, 3] float64.
     """
