@@ -67,8 +67,8 @@ class SfmConfig:
     abs_pose_min_inliers: int = 30  # COLMAP's default; 15 let planar-ambiguity (mirrored) poses in
     # COLMAP's defaults. 1.5 px / 3 deg brought lego's cameras closer to the truth (median rotation
     # after a Sim(3) fit 0.153 / 0.214 -> 0.147 / 0.139 deg; focal 1.1 / 2.3% -> 1.0 / 1.6% short),
-    # but the lego images-only swarm on them scored lower: 28.58 / 28.44 dB against 29.02 / 28.90
-    # (one run each, /work/bench/io3 against io2), so the defaults stay.
+    # but the lego images-only swarm on them scored no better: 30.13 / 29.74 dB held out against
+    # 30.19 / 30.06 (one run each, README), so the defaults stay.
     filter_max_reproj_error: float = 4.0  # px: observations off by more are dropped during mapping
     filter_min_tri_angle: float = 1.5  # deg: points triangulated at a smaller angle are dropped
     depth_min_track_length: int = 2  # SfM points seen by fewer images do not enter the depth prior
