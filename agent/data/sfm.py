@@ -159,7 +159,8 @@ def read_camera_file(folder: str | Path) -> dict | None:
     none of its poses. SfM then starts from that focal length, and keeps it fixed unless the file
     says ``"fixed": false``. Robots that each guess their own focal length end up 1-3% apart on
     lego, which no Sim(3) between their frames can absorb; with the file, two lego robots' frames
-    agreed 10 times better in camera position (though the swarm's PSNR did not change).
+    agreed 10 times better in camera position (the swarm's PSNR did not change, measured before the
+    field box stopped clipping the scene; not re-run since).
     """
     path = Path(folder) / CAMERA_FILE
     if not path.is_file():
@@ -355,25 +356,25 @@ def _save(path: Path, key: str, images_key: str, res: dict) -> None:
     tmp.replace(path)
 
 
-def _load(path: Path, key: str, images_key: str | None = None) -> dict | None:
+def _load(path: Path, key: str, images_key: str | None = None) -> tuple[dict, bool, bool] | None:
     """The cached result for ``key``; with ``images_key``, also one of the same images made with other
-    settings (``res["settings_changed"]``)."""
+    settings.  -> (result, made with other settings, the file records its images key), or None."""
     if not path.exists():
         return None
     try:
         with np.load(path) as z:
-            same_images = images_key is not None and "images_key" in z.files and str(z["images_key"]) == images_key
+            has_images_key = "images_key" in z.files
+            same_images = images_key is not None and has_images_key and str(z["images_key"]) == images_key
             if str(z["key"]) != key and not same_images:
                 return None
             res = json.loads(str(z["info"]))
-            res["settings_changed"] = str(z["key"]) != key
-            res["has_images_key"] = "images_key" in z.files
             res.update({k: z[k] for k in z.files if k not in ("key", "images_key", "info")})
+            settings_changed = str(z["key"]) != key
     except (OSError, ValueError, KeyError) as exc:  # a damaged cache is recomputed, not fatal
         log.warning("ignoring unreadable SfM cache %s: %s", path, exc)
         return None
     res["size"] = tuple(res["size"])
-    return res
+    return res, settings_changed, has_images_key
 
 
 # --------------------------------------------------------------------------------------------
@@ -416,25 +417,25 @@ def run_sfm(image_dir: str | Path, cache_dir: str | Path | None = None, *, width
     digests = _file_digests(files)
     images_key, key = _images_key(digests), _cache_key(digests, config)
 
-    settings_changed = False
     tmp_ctx = tempfile.TemporaryDirectory(prefix="dinerf-sfm-") if cache_dir is None else None
     work = Path(tmp_ctx.name) if tmp_ctx is not None else Path(cache_dir)
     try:
         work.mkdir(parents=True, exist_ok=True)
         result_path = work / "sfm_result.npz"
         t0 = time.perf_counter()
-        res = _load(result_path, key, images_key if keep_frame else None)
-        cache_hit = res is not None
-        if res is None:
-            res = _reconstruct(files, work, config)
+        cached = _load(result_path, key, images_key if keep_frame else None)
+        cache_hit = cached is not None
+        if cached is None:
+            res, settings_changed = _reconstruct(files, work, config), False
             res["seconds"] = time.perf_counter() - t0
             _save(result_path, key, images_key, res)
-        elif not res.pop("has_images_key"):  # a cache from before images_key: add it, keep_frame needs it
-            _save(result_path, key, images_key, {k: v for k, v in res.items() if k != "settings_changed"})
-        if cache_hit and res.pop("settings_changed"):
+        else:
+            res, settings_changed, has_images_key = cached
+            if not has_images_key:  # a cache from before images_key: add it, keep_frame needs it
+                _save(result_path, key, images_key, res)
+        if settings_changed:
             log.warning("%s: keeping the SfM cached in %s, made with other settings: it is the frame this robot "
                         "trained in", image_dir, work)
-            settings_changed = True
     finally:
         if tmp_ctx is not None:
             tmp_ctx.cleanup()
