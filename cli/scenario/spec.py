@@ -235,7 +235,8 @@ class ReportSpec:
     # (agent.evaluation.fit_view_pose), as pose-free NeRF is evaluated; 0 = off. For SfM frames.
     fit_heldout_poses_steps: int = 0
     # Also score each robot's final field on every k-th of its own training views, through its own
-    # (refined) cameras: below what the robot reaches alone, the robots' frames disagree. 0 = off.
+    # (refined) cameras: well below what the robot reaches alone, the shared field cannot hold its
+    # views (cameras that disagree, a box that clips the scene). 0 = off.
     own_views_every: int = 4
 
     def __post_init__(self) -> None:
