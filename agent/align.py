@@ -211,6 +211,9 @@ class AlignmentResult:
     reason: str
     null_inliers: int = 0  # best inlier count of the same RANSAC on shuffled matches
     scale: float = float("nan")
+    # 1-sigma of the rotation, from the reprojection refinement's information matrix (nan without
+    # it): how far the joint optimisation may need to move the estimate (PoseConfig.travel_sigmas).
+    rotation_sigma_deg: float = float("nan")
 
 
 # --------------------------------------------------------------------------------------------
@@ -656,30 +659,32 @@ def estimate_relative(summary_a: Summary, summary_b: Summary, cfg: AlignConfig =
     if fail is not None:
         return AlignmentResult(None, inl, n, rmse, False, fail, null_inl, scale)
     reason = f"{inl} inliers of {n} matches (chance level {null_inl}), rmse {rmse:.3g}"
+    sigma = float("nan")
     if cfg.reproj_refine and summary_a.has_cameras and summary_b.has_cameras:
         r2 = ((pb @ model[:3, :3].T + model[:3, 3] - pa) ** 2).sum(1)
         cand = pairs[r2 < (cfg.reproj_candidates * thr) ** 2]
-        refined, note = refine_by_reprojection(model, summary_a, summary_b, cand, cfg)
+        refined, note, sigma = refine_by_reprojection(model, summary_a, summary_b, cand, cfg)
         if refined is not None:
             model = refined
             scale = float(np.cbrt(abs(np.linalg.det(model[:3, :3]))))
         reason += f"; {note}"
-    return AlignmentResult(model, inl, n, rmse, True, reason, null_inl, scale)
+    return AlignmentResult(model, inl, n, rmse, True, reason, null_inl, scale, sigma)
 
 
 def refine_by_reprojection(model: np.ndarray, a: Summary, b: Summary, pairs: np.ndarray,
-                           cfg: AlignConfig = AlignConfig()) -> tuple[np.ndarray | None, str]:
+                           cfg: AlignConfig = AlignConfig()) -> tuple[np.ndarray | None, str, float]:
     """Refine ``T_a_from_b`` on the symmetric reprojection error of matched points.
 
     For a match (point of a, point of b): b's point mapped by T must land on a's keypoint in a's
     keyframe, and a's point mapped by T^-1 on b's keypoint in b's keyframe. Levenberg-Marquardt
     on a Cauchy loss (pixels) over the 7 (or 6) parameters of a perturbation of T. Returns
-    (None, why) and leaves the estimate alone when there is too little to go on, the points fall
-    behind the cameras, or the result turns away from the 3-D estimate by more than
-    ``cfg.reproj_max_change_deg``.
+    (T, note, rotation 1-sigma in degrees), or (None, why, nan) and leaves the estimate alone when
+    there is too little to go on, the points fall behind the cameras, or the result turns away
+    from the 3-D estimate by more than ``cfg.reproj_max_change_deg``.
     """
+    nan = float("nan")
     if len(pairs) < max(cfg.min_inliers, 4):
-        return None, f"reprojection refinement skipped ({len(pairs)} candidate matches)"
+        return None, f"reprojection refinement skipped ({len(pairs)} candidate matches)", nan
     f64 = torch.float64
     xa = torch.from_numpy(a.points[pairs[:, 0]].astype(np.float64))
     xb = torch.from_numpy(b.points[pairs[:, 1]].astype(np.float64))
@@ -714,7 +719,7 @@ def refine_by_reprojection(model: np.ndarray, a: Summary, b: Summary, pairs: np.
     xi = torch.zeros(7, dtype=f64)
     r = residuals(xi)
     if not torch.isfinite(r).all():
-        return None, "reprojection refinement skipped (points at a camera centre)"
+        return None, "reprojection refinement skipped (points at a camera centre)", nan
     start_px = float(worse_view(r).median())
     lam, best = 1e-3, cost(r)
     for _ in range(cfg.reproj_iters):
@@ -741,12 +746,33 @@ def refine_by_reprojection(model: np.ndarray, a: Summary, b: Summary, pairs: np.
     good = int(((per_match < 3 * cfg.reproj_scale_px) & in_front).sum())
     turn = float(torch.rad2deg(so3_exp(xi[:3]).diagonal().sum().sub(1).div(2).clamp(-1, 1).acos()))
     if good < cfg.min_inliers:
-        return None, f"reprojection refinement refused: {good} matches within {3 * cfg.reproj_scale_px:g} px"
+        return None, f"reprojection refinement refused: {good} matches within {3 * cfg.reproj_scale_px:g} px", nan
     if turn > cfg.reproj_max_change_deg:
-        return None, f"reprojection refinement refused: it turned the estimate by {turn:.1f} deg"
+        return None, f"reprojection refinement refused: it turned the estimate by {turn:.1f} deg", nan
     end_px = float(per_match.median())
+    sigma = _rotation_sigma_deg(torch.func.jacfwd(residuals)(xi), r, c2, cfg.with_scale)
     return transform(xi).numpy(), (f"refined on reprojection: {good} of {len(pairs)} matches within "
-                                f"{3 * cfg.reproj_scale_px:g} px, median {start_px:.2f} -> {end_px:.2f} px")
+                                f"{3 * cfg.reproj_scale_px:g} px, median {start_px:.2f} -> {end_px:.2f} px, "
+                                f"rotation sigma {sigma:.3f} deg"), sigma
+
+
+def _rotation_sigma_deg(jac: torch.Tensor, r: torch.Tensor, c2: float, with_scale: bool) -> float:
+    """1-sigma of the rotation (norm of its 3 components) at a Cauchy least-squares optimum.
+
+    jac: [R, 7], r: [R] residuals in pixels. Covariance s^2 (J^T W J)^-1 with the IRLS weights W
+    and s^2 the weighted residual variance; each match counts once although it gives 4 residuals
+    (its two points are not independent of the other robot's), so the result is not optimistic.
+    """
+    k = 7 if with_scale else 6
+    jac = jac[:, :k]
+    w = 1.0 / (1.0 + r * r / c2)
+    s2 = float((w * r * r).sum() / max(float(w.sum()) - k, 1.0))
+    info = jac.T @ (w[:, None] * jac) / 4.0
+    try:
+        cov = s2 * torch.linalg.inv(info)
+    except RuntimeError:  # singular: the matches do not pin the rotation down
+        return float("inf")
+    return math.degrees(math.sqrt(max(float(cov[:3, :3].diagonal().sum()), 0.0)))
 
 
 # --------------------------------------------------------------------------------------------

@@ -125,3 +125,31 @@ def test_reprojection_refinement_tightens_the_3d_fit(scene):
     # Without cameras on one side (an older peer), the 3-D fit is what comes back.
     bare = dataclasses.replace(sb, keypoints=None, keyframe_cameras=None)
     assert np.array_equal(estimate_relative(sa, bare, cfg).T_a_from_b, fit_3d.T_a_from_b)
+
+
+def test_the_rotation_sigma_grows_with_keypoint_noise_and_bounds_the_error(scene):
+    """The estimate states its own rotation 1-sigma (the joint optimisation's pose learns at a rate
+    set by it): noisier keypoints give a larger sigma, and the error stays within a few sigma."""
+    g = torch.Generator().manual_seed(5)
+    t_b = torch.eye(4, dtype=torch.float64)
+    t_b[:3, :3] = 0.5 * G.random_rotation(g, 180.0)
+    t_b[:3, 3] = torch.tensor([4.0, 8.0, -6.0], dtype=torch.float64)
+    a = _robot(scene, np.arange(0, 150, 8))
+    b = _robot(scene, np.arange(100, 250, 8), t_b)
+    cfg = AlignConfig(num_keyframes=8)
+    clean_a, clean_b = summarise(a, "triangulate", cfg), summarise(b, "triangulate", cfg)
+    truth = G.sim3_inverse(t_b)
+    sigmas, errors = [], []
+    for noise_px in (0.2, 2.0):
+        rng = np.random.default_rng(1)
+        sa, sb = (dataclasses.replace(s, keypoints=(s.keypoints + noise_px * rng.standard_normal(s.keypoints.shape)
+                                                   ).astype(np.float32)) for s in (clean_a, clean_b))
+        res = estimate_relative(sa, sb, cfg)
+        assert res.success and "refined on reprojection" in res.reason, res.reason
+        sigmas.append(res.rotation_sigma_deg)
+        errors.append(G.pose_error(torch.from_numpy(res.T_a_from_b), truth)["rotation_deg"])
+    print(f"sigma {sigmas}, error {errors} deg")
+    assert all(np.isfinite(sigmas)) and 0 < sigmas[0] < sigmas[1] / 3
+    assert all(e <= 3 * s for e, s in zip(errors, sigmas))
+    # Without the refinement there is no sigma, and the pose learns at the configured fixed factor.
+    assert np.isnan(estimate_relative(clean_a, clean_b, dataclasses.replace(cfg, reproj_refine=False)).rotation_sigma_deg)

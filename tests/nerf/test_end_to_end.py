@@ -123,6 +123,30 @@ def test_a_pose_started_from_an_estimate_learns_with_smaller_steps_and_remembers
     assert fresh.pose.from_estimate
 
 
+def test_an_estimate_with_a_sigma_lets_the_pose_travel_only_a_few_sigma():
+    """With the coarse estimate's rotation sigma, the whole schedule's rotation steps add up to
+    pose.travel_sigmas x sigma: a precise estimate is barely moved, a loose one learns at full rate."""
+    views = load_views("procedural:views=2,width=8")
+    center, half, _ = estimate_scene_box(views)
+    cfg = small_config(300)
+    cfg.pose.mode = "sim3"
+    cfg.pose.start_step = 100
+    trainer = RobotTrainer(views, cfg, box_from_center(center, half))
+    travels = []
+    for sigma_deg in (0.02, 0.2):
+        trainer.pose.set_initial(torch.eye(4), sigma_deg=sigma_deg)
+        steps = sum(trainer._pose_lr_factor(s) * cfg.pose.lr_rotation for s in range(cfg.total_steps))
+        travels.append(math.degrees(steps))
+        assert travels[-1] == pytest.approx(cfg.pose.travel_sigmas * sigma_deg, rel=1e-6)
+        assert trainer._pose_lr_factor(99) == 0.0  # still waits for the field
+    assert trainer.pose_lr_scale() < 1.0
+    trainer.pose.set_initial(torch.eye(4), sigma_deg=45.0)  # a loose estimate: full rate, no more
+    assert trainer.pose_lr_scale() == 1.0
+    fresh = RobotTrainer(views, cfg, box_from_center(center, half))
+    fresh.load_state_dict(trainer.state_dict())  # a restart keeps the estimate's sigma
+    assert fresh.pose.estimate_sigma_deg == 45.0 and fresh.pose_lr_scale() == 1.0
+
+
 def test_fit_view_pose_undoes_a_misplaced_held_out_camera():
     """Test-time pose fitting (pose-free NeRF evaluation) moves a camera off by 1 deg back onto its image."""
     from agent.evaluation import fit_view_pose
