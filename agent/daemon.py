@@ -74,10 +74,16 @@ class DaemonConfig:
     # (descriptors + 3-D points, never images) with neighbours whose pose is already known.
     initial_pose: Literal["identity", "coarse"] = "identity"
     align_timeout_s: float = 60.0  # give up on the coarse step after this long (identity start)
+    # Width of the images the keyframe summary is computed from; None: the folder's own size, even
+    # when training runs smaller. On lego, features from the 400 px files place a neighbour's frame
+    # 3-4x more precisely than from 100 px ones (benchmarks/bench_alignment.py, README).
+    summary_width: int | None = None
 
     def __post_init__(self) -> None:
         if self.round_timeout_s <= 0 or self.heartbeat_s <= 0 or self.threads < 1:
             raise ValueError("round_timeout_s and heartbeat_s must be > 0, threads >= 1")
+        if self.summary_width is not None and (not isinstance(self.summary_width, int) or self.summary_width < 8):
+            raise ValueError(f"summary_width must be >= 8 pixels (or unset: the images' own size), got {self.summary_width!r}")
         if self.silent_after_s < 2 * self.heartbeat_s:
             raise ValueError(f"silent_after_s ({self.silent_after_s}) must be at least two heartbeats "
                              f"({2 * self.heartbeat_s} s): one lost heartbeat must not count as silence")
@@ -324,7 +330,10 @@ class Daemon:
         run_dir: Path,
         initial_pose: Tensor | None = None,
         log: Callable[[str], None] = print,
+        summary_views: Views | None = None,
     ) -> None:
+        """summary_views: the same views at the resolution the keyframe summary is computed from
+        (``cfg.summary_width``); None: the training views."""
         if robot_id not in swarm.topology.ids:
             raise ValueError(f"robot {robot_id} is not in the swarm's robots {list(swarm.topology.ids)}")
         if box_from_shared is None and cfg.initial_pose != "coarse":
@@ -350,6 +359,10 @@ class Daemon:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.log = log
         self.setup = build_robot(robot_id, views, box_from_shared, training, initial_pose, is_reference=False)
+        if summary_views is not None and (summary_views.names != views.names
+                                          or not torch.allclose(summary_views.c2w, views.c2w)):
+            raise ValueError("summary_views must be the training views at another resolution (same names and poses)")
+        self.summary_views = summary_views if summary_views is not None else views
         self.trainer = self.setup.trainer
         self.spec = model_spec(self.setup)
         self.expect = self._expectation()
@@ -691,8 +704,9 @@ class Daemon:
 
         acfg = AlignConfig(with_scale=self.trainer.cfg.pose.mode == "sim3")
         t0 = time.monotonic()
-        own = summarise(self.setup.trainer.views, cfg=acfg)
-        image_bytes = int(self.setup.trainer.views.images.numel())  # 8-bit channels it stands for
+        views, self.summary_views = self.summary_views, self.trainer.views  # the sharper copy is needed once
+        own = summarise(views, cfg=acfg)
+        image_bytes = int(views.images.numel())  # 8-bit channels it stands for
         msg = KeyframeSummary(swarm=self.swarm.name, sender=self.robot_id, round=0, epoch=self.membership.epoch,
                               descriptors=own.descriptors, points=own.points, keyframe_index=own.keyframe_index,
                               image_bytes=image_bytes, keypoints=own.keypoints, keyframe_cameras=own.keyframe_cameras)
@@ -708,7 +722,7 @@ class Daemon:
 
         size = serve_summary()
         self._event("keyframes", bytes=size, image_bytes=image_bytes, points=len(own),
-                    seconds=time.monotonic() - t0)
+                    image_width=views.width, seconds=time.monotonic() - t0)
         self.log(f"[robot {self.robot_id}] keyframe summary: {len(own)} points, {size / 1e3:.0f} kB "
                  f"(its images: {image_bytes / 1e6:.1f} MB)")
         if is_reference:
@@ -759,18 +773,22 @@ class Daemon:
                                               torch.tensor(p[4:7], dtype=torch.float64))
                 candidate = t_g_from_j @ torch.from_numpy(res.T_a_from_b)
                 if best is None or res.inliers > best[1]:
-                    best = (j, res.inliers, candidate)
+                    best = (j, res.inliers, candidate, res.rotation_sigma_deg)
             if best is not None:
-                j, inliers, T = best
+                # sigma is that of the last hop only: j's own uncertainty is not in its status.
+                j, inliers, T, sigma = best
                 if self._box_pending:
                     self._adopt_box(boxes[j], f"robot {j}")
                     serve_summary()  # with the box: robots aligning through us need it too
-                self.trainer.pose.set_initial(T.float())
+                self.trainer.pose.set_initial(T.float(), sigma_deg=sigma)
                 with torch.no_grad():
                     self._set_status(alignment=f"coarse via {j}: {inliers} inliers",
                                      pose7=pose_summary(self.trainer.pose.matrix())["params7"])
-                self._event("aligned", via=j, inliers=inliers, seconds=time.monotonic() - t0)
-                self.log(f"[robot {self.robot_id}] coarse alignment via robot {j}: {inliers} inliers")
+                lr_scale = self.trainer.pose_lr_scale()
+                self._event("aligned", via=j, inliers=inliers, seconds=time.monotonic() - t0, pose_lr_scale=lr_scale,
+                            rotation_sigma_deg=sigma if math.isfinite(sigma) else None)
+                self.log(f"[robot {self.robot_id}] coarse alignment via robot {j}: {inliers} inliers, rotation "
+                         f"sigma {sigma:.3f} deg (pose learns at {lr_scale:.3g}x)")
                 return
             if tried and len(tried) == len(self.membership.live_neighbours) and all(
                     statuses.get(j) is not None and statuses[j].alignment.startswith(("reference", "coarse", "identity"))

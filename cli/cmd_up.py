@@ -50,6 +50,10 @@ def up(
                         "daemon.initial_pose = 'coarse' so that the reference shares the box of its SfM frame")
     # a folder of images only: SfM on the full-size images (cached), then downscaled to the training width
     views = load_views(data, width=cfg.training.image_width, sfm_cache_dir=run_dir / SFM_CACHE)
+    summary_views = None  # the keyframe summary's features come from the sharper images when there are any
+    if cfg.daemon.initial_pose == "coarse" and cfg.daemon.summary_width != cfg.training.image_width:
+        full = load_views(data, width=cfg.daemon.summary_width, sfm_cache_dir=run_dir / SFM_CACHE)
+        summary_views = full if full.width != views.width else None
     transport_cfg = cfg.transport_for(robot_id, listen, connect)
 
     try:
@@ -59,7 +63,7 @@ def up(
     daemon = None
     try:
         daemon = Daemon(robot_id, views, scene.box_from_shared, cfg.identity(), cfg.training, cfg.daemon,
-                        transport, run_dir, log=_log)
+                        transport, run_dir, log=_log, summary_views=summary_views)
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: daemon.stop())
         _log(f"[robot {robot_id}] up: swarm '{cfg.swarm.name}' ({cfg.swarm.topology}: "

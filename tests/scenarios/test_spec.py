@@ -76,6 +76,7 @@ netem = [{ link = [2, 3], from_round = 0, delay_ms = 100, loss = 0.1 }]
         ("[faults]\nnetem = [{ link = [1, 2], from_round = 1, delay_ms = 5, jitter_ms = 9 }]\n", "jitter"),
         ("[faults]\nkil = []\n", "kil"),
         ("[run]\nmode = 'docker'\n", "docker"),
+        ("[daemon]\nsummary_width = 4\n", "summary_width"),
     ],
 )
 def test_bad_scenarios_name_the_problem(tmp_path, extra, needle):

@@ -178,12 +178,14 @@ def test_status_command_shows_every_robot_live(tmp_path):
 
 
 def test_coarse_alignment_over_zenoh_starts_near_the_true_relative_pose(tmp_path):
-    """Robots in random local frames exchange keyframe summaries (never images) and start close."""
+    """Robots in random local frames exchange keyframe summaries (never images) and start close.
+
+    They train at 32 px but compute their summaries from their folders' 64 px images."""
     from agent.data.folder import read_truth
     from agent.geometry import pose_error
 
     swarm = make_swarm(tmp_path, robots=2, topology="full", frame="random", views=60, width=64, overlap=0.3,
-                       training={"rounds": 1, "steps_per_round": 2, "train": {"pose": {"mode": "se3"}}},
+                       training={"rounds": 1, "steps_per_round": 2, "image_width": 32, "train": {"pose": {"mode": "se3"}}},
                        daemon={"initial_pose": "coarse"})
     try:
         swarm.start_all()
@@ -202,6 +204,9 @@ def test_coarse_alignment_over_zenoh_starts_near_the_true_relative_pose(tmp_path
           f"{identity_err['rotation_deg']:.1f} deg / {identity_err['translation']:.2f}); {tel['alignment']}")
     assert identity_err["rotation_deg"] > 20  # the test means something: the frames really differ
     assert err["rotation_deg"] < 3.0 and err["translation"] < 0.1
+    assert kf["image_width"] == 64, kf  # the folder's images, not the 32 px it trains at
+    aligned = start[0]
+    assert aligned["rotation_sigma_deg"] > 0 and 0 < aligned["pose_lr_scale"] <= 1, aligned
 
 
 def test_field_box_unknown_to_the_split_comes_from_the_reference_through_the_line(tmp_path):
