@@ -92,20 +92,30 @@ def sfm_robot(data: Path, names: list[str], cache: Path, feature_width: int) -> 
     return views, t_world_from_sfm
 
 
-def refine(robots: dict[int, Views], box_from_shared: torch.Tensor, args, initial: torch.Tensor | None) -> torch.Tensor:
-    """Joint NeRF + pose optimisation of the two robots from ``initial`` (T_a_from_b; None = identity).
-    Returns robot 2's final T_a_from_b estimate, float64."""
+def at_width(local: Views, images: Views) -> Views:
+    """``local`` (a robot's views in its frame) with the images and intrinsics of ``images`` (same views)."""
+    assert local.names == images.names
+    return Views(images.images, local.c2w, images.intrinsics, list(local.names), None, dict(local.meta))
+
+
+def refine(robots: dict[int, Views], box_from_shared: torch.Tensor, args, initial: torch.Tensor | None,
+           sigma_deg: float = float("nan")) -> torch.Tensor:
+    """Joint NeRF + pose optimisation of the two robots from ``initial`` (T_a_from_b; None = identity)
+    with the estimate's rotation 1-sigma, as the daemon does. Returns robot 2's final T_a_from_b, float64."""
     from agent.swarm import Simulation, SwarmTrainingConfig
     from agent.trainer import TrainConfig
 
     train = TrainConfig()
     train = dataclasses.replace(train, pose=dataclasses.replace(train.pose, mode="sim3" if args.scale else "se3",
                                                                 start_step=args.refine_pose_start,
-                                                                lr_factor_from_estimate=args.refine_pose_lr_factor))
+                                                                lr_factor_from_estimate=args.refine_pose_lr_factor,
+                                                                travel_sigmas=args.refine_travel_sigmas))
     cfg = SwarmTrainingConfig(rounds=args.refine_rounds, steps_per_round=args.refine_steps, seed=args.seed,
                               holdout_every=0, train=train)
-    sim = Simulation(robots, {1: {2}, 2: {1}}, box_from_shared, cfg,
-                     initial_poses=None if initial is None else {2: initial}, reference_id=1)
+    sim = Simulation(robots, {1: {2}, 2: {1}}, box_from_shared, cfg, reference_id=1)
+    if initial is not None:
+        sim.trainers[2].pose.set_initial(initial, sigma_deg=sigma_deg if args.refine_use_sigma else float("nan"))
+    print(f"      joint optimisation: pose learning rates x {sim.trainers[2].pose_lr_scale():.3f}", flush=True)
     sim.run(lambda rec: None)
     return sim.trainers[2].pose.matrix().detach().double().cpu()
 
@@ -114,6 +124,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared/data/nerf_synthetic/lego")
     ap.add_argument("--feature-width", type=int, default=100, help="resolution of the images features come from")
+    ap.add_argument("--train-width", type=int, default=100, help="resolution the joint optimisation trains at")
     ap.add_argument("--trials", type=int, default=20)
     ap.add_argument("--overlap", type=float, default=0.2)
     ap.add_argument("--seed", type=int, default=0)
@@ -131,6 +142,10 @@ def main() -> None:
                          "field drifts: 0.1 -> 0.6 deg in the first 10 steps, measured)")
     ap.add_argument("--refine-pose-lr-factor", type=float, default=PoseConfig.lr_factor_from_estimate,
                     help="pose learning rates x this when the joint optimisation starts from the coarse estimate")
+    ap.add_argument("--refine-use-sigma", action=argparse.BooleanOptionalAction, default=True,
+                    help="the pose learns at a rate set by the coarse estimate's rotation sigma (pose.travel_sigmas); "
+                         "without it, at --refine-pose-lr-factor")
+    ap.add_argument("--refine-travel-sigmas", type=float, default=PoseConfig.travel_sigmas)
     ap.add_argument("--first-trial", type=int, default=0, help="skip the trials before this one (same offsets)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", type=Path, default=None)
@@ -146,9 +161,10 @@ def main() -> None:
     from agent.data.loaders import load_views
 
     t0 = time.perf_counter()
-    views = load_views(args.data, width=args.feature_width)
-    print(f"lego: {len(views)} views at {views.width}x{views.height} for features "
-          f"(loaded in {time.perf_counter() - t0:.1f}s); overlap {args.overlap:.0%} of each sector; "
+    views = load_views(args.data, width=args.train_width)
+    feature_views = views if args.feature_width == args.train_width else load_views(args.data, width=args.feature_width)
+    print(f"lego: {len(views)} views, features at {feature_views.width}x{feature_views.height}, joint optimisation "
+          f"at {views.width}x{views.height} (loaded in {time.perf_counter() - t0:.1f}s); overlap {args.overlap:.0%} of each sector; "
           f"{'Sim(3)' if args.scale or args.sfm else 'SE(3)'}; {'disjoint images' if args.disjoint else 'shared views in the overlap'}"
           f"{'; per-robot SfM' if args.sfm else '; true local poses'}; views 0, 8, 16 ... held out")
     centres = views.c2w[:, :3, 3].double()
@@ -156,7 +172,8 @@ def main() -> None:
     print(f"scene radius (camera sphere) {radius:.3f}; offsets: rotation U[0,180] deg, translation U[0,{3 * radius:.1f}]")
     cfg = AlignConfig(num_keyframes=args.keyframes, min_inliers=args.min_inliers, with_scale=args.scale or args.sfm, seed=args.seed)
 
-    views = views.subset([i for i in range(len(views)) if i % 8 != 0])  # held out for evaluation
+    kept = [i for i in range(len(views)) if i % 8 != 0]  # views 0, 8, 16 ... held out for evaluation
+    views, feature_views = views.subset(kept), feature_views.subset(kept)
     g = torch.Generator().manual_seed(args.seed)
     rows = []
     header = ("trial  nA  nB shared  ok  inl/match  rot_deg   t_err  scale%  cam_err  init_rot init_t  "
@@ -191,10 +208,12 @@ def main() -> None:
             va, w_from_a = ra.views, ra.T_world_from_local
             vb, w_from_b = vb_local, rb.T_world_from_local
             true_b_centres = views.c2w[ib, :3, 3].double()
+        # What each robot computes its summary from: its images at the feature width, in its local frame.
+        fa, fb = (va, vb) if args.sfm else (at_width(va, feature_views.subset(ia)), at_width(vb, feature_views.subset(ib)))
         truth = G.sim3_inverse(w_from_a) @ w_from_b  # T_a_from_b
         a_from_world = G.sim3_inverse(w_from_a)
         t1 = time.perf_counter()
-        sa, sb = summarise(va, "triangulate", cfg), summarise(vb, "triangulate", cfg)
+        sa, sb = summarise(fa, "triangulate", cfg), summarise(fb, "triangulate", cfg)
         t2 = time.perf_counter()
         res = estimate_relative(sa, sb, cfg)
         t3 = time.perf_counter()
@@ -213,13 +232,13 @@ def main() -> None:
             return dict(rot=err["rotation_deg"], t=err["translation"], scale=100 * err["scale_rel"], cam=float(cam))
 
         if res.success:
-            row.update(errors(res.T_a_from_b), reason=res.reason)
+            row.update(errors(res.T_a_from_b), reason=res.reason, sigma=res.rotation_sigma_deg)
         if res_3d.success:
             row["fit_3d"] = errors(res_3d.T_a_from_b)
         for start in starts:
             initial = torch.from_numpy(res.T_a_from_b).float() if start == "coarse" and res.success else None
             t4 = time.perf_counter()
-            est = refine({1: va, 2: vb}, split.box_from_shared, args, initial)
+            est = refine({1: va, 2: vb}, split.box_from_shared, args, initial, res.rotation_sigma_deg)
             to_world = G.sim3_inverse(a_from_world)
             err = G.pose_error(to_world @ est, to_world @ truth)
             cam = float((G.transform_points(to_world @ est, vb.c2w[:, :3, 3].double()) - true_b_centres).norm(dim=1).mean())
@@ -236,6 +255,9 @@ def main() -> None:
               f"{row['init_rot']:8.1f} {row['init_t']:6.2f} {row['sum_a'] / 1e3:8.1f} {row['sum_b'] / 1e3:7.1f} "
               f"{row['png_b'] / 1e3:13.1f} {row['raw_b'] / 1e3:16.1f} {row['t_sum']:6.2f} {row['t_est']:6.2f}  "
               f"{'' if res.success else res.reason}", flush=True)
+        if res.success:
+            print(f"      rotation sigma (the estimate's own) {row['sigma']:.3f} deg; error / sigma "
+                  f"{row['rot'] / row['sigma']:.2f}", flush=True)
         if "fit_3d" in row:
             f3 = row["fit_3d"]
             print(f"      3-D fit only: {f3['rot']:.3f} deg, t {f3['t']:.4f}, cameras {f3['cam']:.4f}", flush=True)
@@ -259,6 +281,10 @@ def main() -> None:
             print(f"  {name}: within 1 deg / 0.02 units {within}/{n} on the transform's translation, "
                   f"{within_cam}/{n} on B's camera centres; median {np.median([e['rot'] for e in errs]):.3f} deg, "
                   f"t {np.median([e['t'] for e in errs]):.4f}, cameras {np.median([e['cam'] for e in errs]):.4f}")
+    ratio = [r["rot"] / r["sigma"] for r in ok if np.isfinite(r.get("sigma", np.nan))]
+    if ratio:
+        print(f"  rotation error / the estimate's sigma: median {np.median(ratio):.2f}, max {max(ratio):.2f} "
+              f"(1-sigma of a 3-D rotation: about 0.9 expected)")
     basin = sum(r["init_rot"] <= 45.0 and r["init_t"] <= 1.0 for r in rows)
     print(f"identity start within the paper's basin (<= 45 deg and <= 1 unit): {basin}/{n}")
     sums = np.array([r["sum_b"] for r in rows])
