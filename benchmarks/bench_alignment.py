@@ -31,6 +31,10 @@ truth is the SfM->world similarity of each robot (trimmed Umeyama on its camera 
     .venv/bin/python benchmarks/bench_alignment.py --feature-width 100 --disjoint
     .venv/bin/python benchmarks/bench_alignment.py --feature-width 100 --sfm --trials 5
     .venv/bin/python benchmarks/bench_alignment.py --feature-width 100 --refine-rounds 20
+    .venv/bin/python benchmarks/bench_alignment.py --feature-width 400 --refine-rounds 10 --refine-starts coarse
+
+``--feature-width`` and ``--train-width`` (default 100) are separate: a robot computes its summary
+from its own image files (the daemon's default, ``daemon.summary_width``) while it trains smaller.
 """
 
 from __future__ import annotations
@@ -305,7 +309,7 @@ def main() -> None:
         args.json.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "trials": rows},
                                         indent=2, default=float) + "\n")
     print(f"time per robot summary {np.mean([r['t_sum'] for r in rows]):.2f} s, per estimate "
-          f"{np.mean([r['t_est'] for r in rows]):.2f} s (2 threads)")
+          f"{np.mean([r['t_est'] for r in rows]):.2f} s ({args.threads} threads)")
 
 
 if __name__ == "__main__":
