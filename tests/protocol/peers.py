@@ -159,8 +159,8 @@ def role_runtime_threads(args) -> None:
             emit("error", detail="robot 1 never appeared")
             return
         names: list[str] = []
-        deadline = time.monotonic() + 5.0
-        while time.monotonic() < deadline:  # the runtime's workers come up one by one
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:  # the runtime's workers (rx and tx) come up one by one
             names = []
             for t in os.listdir("/proc/self/task"):
                 try:
@@ -168,7 +168,8 @@ def role_runtime_threads(args) -> None:
                 except OSError:  # a thread that just ended
                     pass
             names = sorted(n for n in names if n[:3] in ("rx-", "tx-"))
-            if sum(n.startswith("rx-") for n in names) >= TransportConfig().rx_threads:
+            if (sum(n.startswith("rx-") for n in names) >= TransportConfig().rx_threads
+                    and any(n.startswith("tx-") for n in names)):
                 break
             time.sleep(0.1)
         emit("threads", names=names)
