@@ -23,6 +23,7 @@ Pure Python + numpy: importing this module never imports zenoh or torch.
 
 from __future__ import annotations
 
+import enum
 import hashlib
 import json
 import math
@@ -32,7 +33,8 @@ from typing import Any, Mapping
 import numpy as np
 
 #: Bumped whenever the header or a body changes incompatibly; peers on another version are refused.
-SCHEMA_VERSION = 1
+#: 2: Status.alignment is an :class:`Alignment` value, with its free text in alignment_detail.
+SCHEMA_VERSION = 2
 
 #: Largest round / epoch number accepted (fits a signed 32-bit int on every platform).
 MAX_ROUND = 2**31 - 1
@@ -183,6 +185,26 @@ class ModelSpec:
 # --------------------------------------------------------------------------- messages
 
 
+class Alignment(str, enum.Enum):
+    """Where a robot stands with its relative pose (``Status.alignment``)."""
+
+    PENDING = "pending"  # still looking for it (coarse alignment running)
+    REFERENCE = "reference"  # it defines the shared frame
+    IDENTITY = "identity"  # it starts from the identity, as configured (the paper's start)
+    COARSE = "coarse"  # found by matching keyframe summaries with an aligned neighbour
+    UNALIGNED = "unaligned"  # the coarse step found nothing; it started from the identity
+
+    @property
+    def knows_pose(self) -> bool:
+        """Others may align through this robot: its frame is placed in the shared one."""
+        return self in (Alignment.REFERENCE, Alignment.COARSE)
+
+    @property
+    def settled(self) -> bool:
+        """The robot has decided where it starts (it will not look any further)."""
+        return self is not Alignment.PENDING
+
+
 @dataclass
 class ThetaSnapshot:
     """A robot's model parameters at the end of ``round`` (float32 in memory, ordered)."""
@@ -219,7 +241,8 @@ class Status:
     bytes_in: int
     bytes_out: int
     rejected: dict[str, int]
-    alignment: str
+    alignment: Alignment
+    alignment_detail: str  # free text for people: via whom, how many inliers, why it failed
     wall_time: float
     seconds_compute: float
     seconds_wait: float
@@ -242,6 +265,7 @@ class Status:
         "bytes_out",
         "rejected",
         "alignment",
+        "alignment_detail",
         "wall_time",
         "seconds_compute",
         "seconds_wait",
@@ -363,7 +387,11 @@ def check_status_body(body: Any) -> dict[str, Any]:
         raise bad("reference", "expected a robot id")
     out["reference"] = ref
     out["phase"] = text("phase")
-    out["alignment"] = text("alignment")
+    try:
+        out["alignment"] = Alignment(body["alignment"])
+    except ValueError:
+        raise bad("alignment", f"expected one of {[a.value for a in Alignment]}") from None
+    out["alignment_detail"] = text("alignment_detail")
     out["loss"] = finite_number("loss", allow_none=True)
     out["psnr"] = finite_number("psnr", allow_none=True)
     pose = body["pose"]
@@ -412,7 +440,8 @@ def status_body(msg: Status) -> dict[str, Any]:
         "bytes_in": int(msg.bytes_in),
         "bytes_out": int(msg.bytes_out),
         "rejected": {str(k): int(v) for k, v in msg.rejected.items()},
-        "alignment": str(msg.alignment),
+        "alignment": Alignment(msg.alignment).value,
+        "alignment_detail": str(msg.alignment_detail),
         "wall_time": float(msg.wall_time),
         "seconds_compute": float(msg.seconds_compute),
         "seconds_wait": float(msg.seconds_wait),

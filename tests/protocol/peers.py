@@ -19,7 +19,7 @@ import numpy as np
 
 from protocol import codec
 from protocol.keys import ForeignKey
-from protocol.messages import ModelSpec, Rejected, Status, ThetaSnapshot
+from protocol.messages import Alignment, ModelSpec, Rejected, Status, ThetaSnapshot
 from protocol.rounds import Mailbox
 from protocol.transport import TransportConfig, ZenohTransport
 from tests.protocol import helpers
@@ -260,7 +260,7 @@ def rogue_messages() -> list[tuple[str, str, bytes]]:
     out = [(reason, keys.theta(key_id, helpers.ROUND, to=0), data)
            for _, reason, data, key_id in helpers.malformed_cases()]
     status = codec.encode(Status(helpers.SWARM, 1, helpers.ROUND, 0, 0, "train", 1.0, None, [0.0] * 7, [], 0, 0, {},
-                                 "identity", 0.0, 0.0, 0.0))
+                                 Alignment.IDENTITY, "", 0.0, 0.0, 0.0))
     out += [
         ("bad_kind", keys.theta(1, helpers.ROUND, to=0), status),
         ("foreign_key", f"dinerf/{helpers.SWARM}/theta/abc/{helpers.ROUND}/0", helpers.valid_frame()),

@@ -12,7 +12,7 @@ import zstandard
 
 from protocol import codec
 from protocol.codec import Expectation, decode, encode, read_header
-from protocol.messages import (REJECT_REASONS, KeyframeSummary, ModelSpec, Rejected, Status,
+from protocol.messages import (REJECT_REASONS, Alignment, KeyframeSummary, ModelSpec, Rejected, Status,
                                ThetaSnapshot)
 from tests.protocol.helpers import (ROUND, SENDER, SWARM, expectation, keys, malformed_cases, reframe,
                                     rle_zstd_frame, small_spec, snapshot, split_frame,
@@ -22,7 +22,7 @@ from tests.protocol.helpers import (ROUND, SENDER, SWARM, expectation, keys, mal
 def _status(**kw):
     fields = dict(swarm=SWARM, sender=2, round=7, epoch=3, reference=0, phase="train", loss=0.25, psnr=None,
                   pose=[0.0, 0.1, -0.2, 0.3, 1.0, 2.0, -3.0], neighbours_heard=[1], bytes_in=1000, bytes_out=2000,
-                  rejected={"wrong_swarm": 2}, alignment="identity", wall_time=12.5, seconds_compute=3.0,
+                  rejected={"wrong_swarm": 2}, alignment=Alignment.IDENTITY, alignment_detail="", wall_time=12.5, seconds_compute=3.0,
                   seconds_wait=0.5)
     fields.update(kw)
     return Status(**fields)

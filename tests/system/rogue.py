@@ -19,7 +19,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from protocol import codec  # noqa: E402
-from protocol.messages import ModelSpec, Status, ThetaSnapshot  # noqa: E402
+from protocol.messages import Alignment, ModelSpec, Status, ThetaSnapshot  # noqa: E402
 from tests.protocol.helpers import reframe, rle_zstd_frame  # noqa: E402
 
 # reason the daemon must count -> how to forge it (spec, swarm, robot j, round k) -> (key, bytes)
@@ -49,7 +49,7 @@ def forge(spec: ModelSpec, swarm: str, keys, j: int, other: int, k: int, tensors
     flipped = bytearray(good)
     flipped[-9] ^= 0x10
     other_spec = ModelSpec(spec.params, {**dict(spec.arch), "forged": True})
-    status_ok = Status(swarm, j, k, 0, 0, "x", 1.0, None, [0.0] * 7, [], 0, 0, {}, "x", 0.0, 0.0, 0.0)
+    status_ok = Status(swarm, j, k, 0, 0, "x", 1.0, None, [0.0] * 7, [], 0, 0, {}, Alignment.IDENTITY, "x", 0.0, 0.0, 0.0)
     t = keys.theta(j, k, to=to)
     return [
         ("wrong_swarm", t, codec.encode(snap(swarm="not-this-swarm"))),
