@@ -28,6 +28,7 @@ __all__ = [
     "so3_log",
     "sim3_from_params",
     "sim3_to_params",
+    "pose_summary",
     "sim3_decompose",
     "sim3_compose",
     "sim3_inverse",
@@ -129,6 +130,14 @@ def sim3_to_params(transform: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Inverse of :func:`sim3_from_params`: ``(log_scale [...], phi [..., 3], t [..., 3])``."""
     scale, rot, trans = sim3_decompose(transform)
     return torch.log(scale), so3_log(rot).to(transform.dtype), trans
+
+
+def pose_summary(transform: Tensor) -> dict:
+    """A pose for logs and the wire: scale, rotation angle (deg), translation, and the 7 parameters
+    ``[log s, phi (3), t (3)]`` of :func:`sim3_from_params`.  transform: [4, 4]."""
+    log_s, phi, t = sim3_to_params(transform.detach().double().cpu())
+    return {"scale": math.exp(float(log_s)), "rotation_deg": math.degrees(float(phi.norm())),
+            "translation": [float(x) for x in t], "params7": [float(log_s), *map(float, phi), *map(float, t)]}
 
 
 def sim3_compose(a: Tensor, b: Tensor) -> Tensor:

@@ -11,6 +11,7 @@ run": same seeds, same held-out views, same order of operations within a round:
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass, field
 from typing import Callable, Mapping
 
@@ -18,7 +19,9 @@ from torch import Tensor
 
 from agent.consensus import ConsensusConfig, disagreement
 from agent.data.views import Views
-from agent.trainer import RobotTrainer, TrainConfig
+from agent.geometry import pose_summary
+from agent.telemetry import RoundRecord
+from agent.trainer import RobotTrainer, StepStats, TrainConfig
 
 
 @dataclass
@@ -92,16 +95,6 @@ def build_robot(
     return RobotSetup(robot_id, trainer, holdout)
 
 
-@dataclass
-class RoundRecord:
-    round: int  # the round just completed (theta^{round+1} exists)
-    loss: dict[int, float]
-    batch_psnr: dict[int, float]
-    seconds: dict[int, float]
-    disagreement: dict[int, float]
-    poses: dict[int, Tensor]  # T_shared_from_local estimates
-
-
 class Simulation:
     """N robots on a topology in one process, exchanging theta through memory."""
 
@@ -129,7 +122,8 @@ class Simulation:
     def trainers(self) -> dict[int, RobotTrainer]:
         return {i: r.trainer for i, r in self.robots.items()}
 
-    def run_round(self) -> RoundRecord:
+    def run_round(self) -> dict[int, RoundRecord]:
+        """One round of every robot -> each robot's record (``round`` = rounds completed)."""
         k = self.round
         stats = {}
         for i, robot in self.robots.items():
@@ -141,17 +135,22 @@ class Simulation:
         self.thetas = new
         self.round += 1
         ids = list(self.robots)
-        dis = disagreement([list(new[i].values()) for i in ids])
-        return RoundRecord(
-            round=k,
-            loss={i: s.loss for i, s in stats.items()},
-            batch_psnr={i: s.batch_psnr for i, s in stats.items()},
-            seconds={i: s.seconds for i, s in stats.items()},
-            disagreement=dict(zip(ids, dis)),
-            poses={i: r.trainer.pose.matrix().detach().clone() for i, r in self.robots.items()},
-        )
+        dis = dict(zip(ids, disagreement([list(new[i].values()) for i in ids])))
+        return {i: self._record(i, stats[i], dis[i]) for i in ids}
 
-    def run(self, on_round: Callable[[RoundRecord], None] | None = None) -> list[RoundRecord]:
+    def _record(self, i: int, stats: StepStats, disagreement_i: float) -> RoundRecord:
+        T = self.robots[i].trainer.pose.matrix().detach().double().cpu()
+        pose = pose_summary(T)
+        return RoundRecord(
+            robot=i, round=self.round, time=time.time(), monotonic=time.monotonic(), loss=stats.loss,
+            rgb_loss=stats.rgb_loss, depth_loss=stats.depth_loss, batch_psnr=stats.batch_psnr,
+            samples_per_ray=stats.samples_per_ray, pose=T.tolist(), pose_rotation_deg=pose["rotation_deg"],
+            pose_translation=pose["translation"], pose_scale=pose["scale"], reference=self.reference_id,
+            elected=i == self.reference_id, live_neighbours=self.neighbours[i], reachable=self.neighbours[i],
+            heard=self.neighbours[i], seconds_compute=stats.seconds, steps=stats.steps,
+            seconds_per_step=stats.seconds / max(stats.steps, 1), disagreement=disagreement_i)
+
+    def run(self, on_round: Callable[[dict[int, RoundRecord]], None] | None = None) -> list[dict[int, RoundRecord]]:
         history = []
         while self.round < self.cfg.rounds:
             rec = self.run_round()

@@ -111,10 +111,11 @@ def main() -> None:
           f"{len(ev_known.views)} held-out views; {total} steps per model", flush=True)
 
     def log_rounds(name):
-        def cb(rec):
-            d = statistics.fmean(rec.disagreement.values())
-            print(f"  [{name}] round {rec.round + 1}/{args.rounds} batch psnr "
-                  + " ".join(f"{i}:{p:.1f}" for i, p in rec.batch_psnr.items()) + f" disagreement {d:.3f}", flush=True)
+        def cb(records):
+            d = statistics.fmean(r.disagreement for r in records.values())
+            k = next(iter(records.values())).round
+            print(f"  [{name}] round {k}/{args.rounds} batch psnr "
+                  + " ".join(f"{i}:{r.batch_psnr:.1f}" for i, r in records.items()) + f" disagreement {d:.3f}", flush=True)
         return cb
 
     if "baseline" in modes:

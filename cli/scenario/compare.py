@@ -21,7 +21,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from cli.scenario.report import load_run_spec, read_jsonl
+from agent.checkpoint import RunFolder
+from agent.telemetry import read_events, read_telemetry
+from cli.scenario.report import load_run_spec
 
 
 class CompareError(ValueError):
@@ -87,12 +89,13 @@ def _report(run_dir: Path) -> dict[str, Any]:
 def rounds_lost_per_restart(robot_dir: Path) -> list[int]:
     """For each resume of this robot: its last completed round before the restart minus the
     round its checkpoint gave back (0 = nothing lost)."""
-    telemetry = sorted(read_jsonl(robot_dir / "telemetry.jsonl"), key=lambda r: r.get("time", 0.0))
+    folder = RunFolder(robot_dir, create=False)
+    telemetry = sorted(read_telemetry(folder.telemetry), key=lambda r: r.time)
     lost = []
-    for ev in read_jsonl(robot_dir / "events.jsonl"):
+    for ev in read_events(folder.events):
         if ev.get("event") != "resumed":
             continue
-        before = [int(r["round"]) for r in telemetry if r.get("time", 0.0) < ev.get("time", 0.0)]
+        before = [r.round for r in telemetry if r.time < ev.get("time", 0.0)]
         lost.append(max(0, max(before, default=0) - int(ev.get("from_round", 0))))
     return lost
 

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+from agent.telemetry import RoundRecord
 from cli.config import to_dict
 from cli.scenario.spec import ScenarioSpec, spec_to_dict
 from cli.scenario.tomlout import dumps
@@ -137,7 +138,7 @@ class RobotProcess:
     proc: subprocess.Popen | None = None
     starts: int = 0
     state: str = "new"  # new | running | killed | done | failed | stopped
-    records: list[dict] = field(default_factory=list)
+    records: list[RoundRecord] = field(default_factory=list)
     exit_codes: list[int] = field(default_factory=list)
     _pos: int = 0
     _partial: str = ""
@@ -146,7 +147,7 @@ class RobotProcess:
     def telemetry(self) -> Path:
         return self.run_dir / "telemetry.jsonl"
 
-    def poll_telemetry(self) -> list[dict]:
+    def poll_telemetry(self) -> list[RoundRecord]:
         """New complete lines of telemetry.jsonl since the last call."""
         if not self.telemetry.is_file():
             return []
@@ -160,15 +161,15 @@ class RobotProcess:
         new = []
         for line in lines:
             if line.strip():
-                with contextlib.suppress(json.JSONDecodeError):
-                    new.append(json.loads(line))
+                with contextlib.suppress(json.JSONDecodeError, TypeError, ValueError):
+                    new.append(RoundRecord.from_dict(json.loads(line)))
         self.records.extend(new)
         return new
 
     @property
     def completed(self) -> int:
         """Rounds this robot has completed (0 before its first telemetry line)."""
-        return max((int(r.get("round", 0)) for r in self.records), default=0)
+        return max((r.round for r in self.records), default=0)
 
 
 @dataclass
@@ -433,14 +434,13 @@ class ScenarioRunner:
                 return False, f"timeout after {self.spec.run.timeout_s:g} s (swarm at round {rnd} of {self.spec.rounds})"
             time.sleep(self.poll_s)
 
-    def _progress(self, robot: int, rec: dict) -> None:
-        line = f"[robot {robot}] round {rec.get('round')}"
-        for key, fmt in (("loss", ".4f"), ("psnr", ".2f")):
-            if isinstance(rec.get(key), (int, float)):
-                line += f", {key} {rec[key]:{fmt}}"
-        if "heard" in rec:
-            line += f", heard {rec['heard']}"
-        self.echo(line)
+    def _progress(self, robot: int, rec: RoundRecord) -> None:
+        line = f"[robot {robot}] round {rec.round}"
+        if rec.loss is not None:
+            line += f", loss {rec.loss:.4f}"
+        if rec.psnr is not None:
+            line += f", psnr {rec.psnr:.2f}"
+        self.echo(f"{line}, heard {rec.heard}")
 
     def _write_run_json(self, ok: bool, reason: str, seconds: float) -> None:
         doc = {

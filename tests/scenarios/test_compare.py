@@ -32,14 +32,14 @@ def _run(folder: Path, psnr: dict[int, float], final_round: int = 12, starts: in
 
 def test_lost_rounds_are_counted_from_telemetry_and_resume_events(tmp_path):
     robot = tmp_path / "robots/3"
-    _jsonl(robot / "telemetry.jsonl", [{"round": k, "time": float(k)} for k in (1, 2, 3)]
-           + [{"round": k, "time": 10.0 + k} for k in (3, 4)])
+    _jsonl(robot / "telemetry.jsonl", [{"robot": 3, "round": k, "time": float(k)} for k in (1, 2, 3)]
+           + [{"robot": 3, "round": k, "time": 10.0 + k} for k in (3, 4)])
     _jsonl(robot / "events.jsonl", [{"event": "start", "time": 0.5},
                                     {"event": "resumed", "from_round": 3, "time": 5.0},   # kept all 3
                                     {"event": "resumed", "from_round": 2, "time": 20.0}])  # lost 2
     assert rounds_lost_per_restart(robot) == [0, 2]
     with open(robot / "telemetry.jsonl", "a") as f:
-        f.write('{"round": 9, "ti')  # a line cut short by SIGKILL is skipped
+        f.write('{"robot": 3, "round": 9, "ti')  # a line cut short by SIGKILL is skipped
     assert rounds_lost_per_restart(robot) == [0, 2]
     assert rounds_lost_per_restart(tmp_path / "robots/9") == []
 

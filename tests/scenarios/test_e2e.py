@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 
+from agent.telemetry import RoundRecord, read_telemetry
 from cli.scenario.compare import rounds_lost_per_restart
 from cli.scenario.netns import list_namespaces
 from cli.scenario.report import build_report
@@ -92,8 +93,8 @@ def run_scenario(tmp: Path, name: str, faults: str = "", steps: int = 8, rounds:
     return outcome, out, report
 
 
-def telemetry(out: Path, robot: int) -> list[dict]:
-    return [json.loads(l) for l in (out / "robots" / str(robot) / "telemetry.jsonl").read_text().splitlines()]
+def telemetry(out: Path, robot: int) -> list[RoundRecord]:
+    return read_telemetry(out / "robots" / str(robot) / "telemetry.jsonl")
 
 
 @pytest.fixture(scope="module")
@@ -111,9 +112,9 @@ def test_fault_free_swarm_completes(fault_free):
     out, report = fault_free
     for i in (1, 2, 3, 4):
         recs = telemetry(out, i)
-        assert [r["round"] for r in recs] == list(range(1, ROUNDS + 1))
+        assert [r.round for r in recs] == list(range(1, ROUNDS + 1))
         assert json.loads((out / f"robots/{i}/done.json").read_text())["rounds"] == ROUNDS
-        assert all(r["heard"] == r["live_neighbours"] for r in recs)
+        assert all(r.heard == r.live_neighbours for r in recs)
         assert math.isfinite(final_psnr(report, i))
     assert (out / "report.md").is_file() and (out / "convergence.png").is_file() and (out / "renders.png").is_file()
 
@@ -127,16 +128,16 @@ def test_kill_a_robot_survivors_finish(tmp_path, fault_free):
     assert run["robots"]["3"]["exit_codes"] == [-9]
     for i, other in ((2, 1), (4, 1)):
         recs = telemetry(out, i)
-        assert [r["round"] for r in recs] == list(range(1, ROUNDS + 1))
-        late = [r for r in recs if r["round"] >= kill["robot_rounds"][str(i)] + 2]  # begun after the kill
-        assert late and all(r["live_neighbours"] == [other] and r["heard"] == [other] for r in late), late
+        assert [r.round for r in recs] == list(range(1, ROUNDS + 1))
+        late = [r for r in recs if r.round >= kill["robot_rounds"][str(i)] + 2]  # begun after the kill
+        assert late and all(r.live_neighbours == [other] and r.heard == [other] for r in late), late
         # liveliness notices the death: nobody waits out the 20 s barrier for the dead robot
-        assert all(r["seconds_wait"] < 10 for r in late), [r["seconds_wait"] for r in late]
+        assert all(r.seconds_wait < 10 for r in late), [r.seconds_wait for r in late]
     for i in (1, 2, 4):
         assert (out / f"robots/{i}/done.json").is_file()
         assert abs(final_psnr(report, i) - final_psnr(fault_free[1], i)) < 1.0
     # the dead robot's checkpoint is intact and loadable (no lost checkpoint)
-    from agent.daemon import load_for_eval
+    from agent.checkpoint import load_for_eval
 
     trainer = load_for_eval(out / "robots/3", out / "data/robot3")
     assert trainer.step == 8 * len(telemetry(out, 3))
@@ -170,16 +171,16 @@ def cut_run(tmp_path_factory):
 def test_cut_link_is_silent_while_cut_and_everyone_finishes(cut_run, fault_free_long):
     out, report, cut, heal = cut_run  # noqa: RUF059
     for i, peer, other in ((2, 3, 1), (3, 2, 4)):
-        recs = {r["round"]: r for r in telemetry(out, i)}
+        recs = {r.round: r for r in telemetry(out, i)}
         assert max(recs) == CUT_ROUNDS and (out / f"robots/{i}/done.json").is_file()
         inside = [k for k in recs if cut["robot_rounds"][str(i)] + 1 < k <= heal["robot_rounds"][str(i)]]
         assert inside, recs.keys()
         # the cut link carries nothing (the peer may still count as alive: liveness is gossiped around
         # the ring) ...
-        assert all(peer not in recs[k]["heard"] for k in inside), {k: recs[k]["heard"] for k in recs}
+        assert all(peer not in recs[k].heard for k in inside), {k: recs[k].heard for k in recs}
         # ... and the other link carries every round: the cut no longer stalls the healthy links
         # (ZenohTransport: BLOCK wait below the lease, receive threads for lingering closes)
-        assert all(recs[k]["heard"] == [other] for k in inside), {k: recs[k]["heard"] for k in recs}
+        assert all(recs[k].heard == [other] for k in inside), {k: recs[k].heard for k in recs}
     # Quality next to the fault-free run: the swarm's mean closely, each robot loosely. The healed
     # link is used again 1-2 rounds after the heal, so in this 12-round run the cut lasts about
     # 5 rounds (before the transport fixes up to 8; robot 2 then ended 0.2-1.1 dB below, 7 runs).
@@ -190,19 +191,19 @@ def test_cut_link_is_silent_while_cut_and_everyone_finishes(cut_run, fault_free_
 def test_after_the_heal_the_swarm_is_in_step_again(cut_run):
     out, _report, _cut, heal = cut_run
     for i, peer in ((2, 3), (3, 2)):
-        recs = {r["round"]: r for r in telemetry(out, i)}
+        recs = {r.round: r for r in telemetry(out, i)}
         after = [k for k in recs if k > heal["robot_rounds"][str(i)] + 1]
-        assert after and all(peer in recs[k]["live_neighbours"] for k in after)  # healed: alive again
+        assert after and all(peer in recs[k].live_neighbours for k in after)  # healed: alive again
         # the healed link carries the snapshots again within two rounds (1-2 in 8 runs), then always
-        assert all(peer in recs[k]["heard"] for k in after[1:]), {k: recs[k]["heard"] for k in recs}
+        assert all(peer in recs[k].heard for k in after[1:]), {k: recs[k].heard for k in recs}
     for i in (1, 2, 3, 4):
         recs = telemetry(out, i)
-        assert [r["round"] for r in recs] == list(range(1, CUT_ROUNDS + 1)), "rounds skipped"
+        assert [r.round for r in recs] == list(range(1, CUT_ROUNDS + 1)), "rounds skipped"
         # No round waits long: before the transport fixes every cut cost a 5 s stall and most an
         # 8-10 s one (lingering socket closes); now the longest wait in 8 runs was 0.73 s. 5 s
         # leaves room for one lost push and its pull, or for a token that outlives its link (the
         # barrier gives up on a neighbour silent for daemon.silent_after_s, 3 s).
-        assert all(r["seconds_wait"] < 5 for r in recs), [r["seconds_wait"] for r in recs]
+        assert all(r.seconds_wait < 5 for r in recs), [r.seconds_wait for r in recs]
 
 
 def test_a_frozen_robot_comes_back_in_step(tmp_path, fault_free_long):
@@ -220,15 +221,15 @@ def test_a_frozen_robot_comes_back_in_step(tmp_path, fault_free_long):
     thaw = next(e for e in run["events"] if e.get("fault") == "thaw")
     for i in (1, 2, 3, 4):
         recs = telemetry(out, i)
-        assert recs[-1]["round"] == CUT_ROUNDS and (out / f"robots/{i}/done.json").is_file()
+        assert recs[-1].round == CUT_ROUNDS and (out / f"robots/{i}/done.json").is_file()
         # Not out of phase: at most one barrier runs into its 20 s deadline per robot (the old
         # mailbox made it every round). One can: in ~1 run of 6 the thawed robot's Zenoh link
         # to a neighbour comes back one-sided (it sees the neighbour's token, the neighbour does
         # not see its), so it waits for a snapshot that is not sent; a known limitation.
-        waits = [(r["round"], round(r["seconds_wait"], 1)) for r in recs]
+        waits = [(r.round, round(r.seconds_wait, 1)) for r in recs]
         assert sum(w >= 10 for _, w in waits) <= 1, waits
-    after = [r for r in telemetry(out, 3) if r["round"] > thaw["robot_rounds"]["3"] + 1]
-    assert after and any(r["heard"] == [2, 4] for r in after), [(r["round"], r["heard"]) for r in telemetry(out, 3)]
+    after = [r for r in telemetry(out, 3) if r.round > thaw["robot_rounds"]["3"] + 1]
+    assert after and any(r.heard == [2, 4] for r in after), [(r.round, r.heard) for r in telemetry(out, 3)]
     caught = [e for e in (json.loads(l) for l in (out / "robots/3/events.jsonl").read_text().splitlines())
               if e["event"] in ("caught_up", "training_through")]
     assert caught, "robot 3 never noticed that its neighbours were ahead"
@@ -254,13 +255,13 @@ def test_killed_robot_restarts_and_resumes(tmp_path, fault_free):
     log = (out / "logs/robot3.log").read_text()
     assert f"resumed from {out / 'robots/3/checkpoint.pt'} at round" in log
     recs = telemetry(out, 3)
-    done = [r["round"] for r in recs]
+    done = [r.round for r in recs]
     assert done == sorted(set(done)) and done[-1] == rounds  # no round twice, finished
     assert len(done) > kill["robot_rounds"]["3"], done  # trained after the restart
     done_before = kill["robot_rounds"]["3"]
     assert done[:done_before] == list(range(1, done_before + 1))  # nothing of before the kill lost
     assert rounds_lost_per_restart(out / "robots/3") == [0]  # the checkpoint had every completed round
-    assert any(3 in r["heard"] for r in telemetry(out, 4) if r["round"] >= done[done_before])  # back in the swarm
+    assert any(3 in r.heard for r in telemetry(out, 4) if r.round >= done[done_before])  # back in the swarm
     for i in (1, 2, 4):  # same steps per round as the fault-free run only for the survivors' schedule: loose
         assert math.isfinite(final_psnr(report, i))
 
@@ -273,11 +274,11 @@ def test_lossy_slow_link_still_carries_the_model(tmp_path, fault_free):
     run = json.loads((out / "run.json").read_text())
     netem = next(e for e in run["events"] if e.get("fault") == "netem")
     for i, peer in ((1, 2), (2, 1)):
-        recs = {r["round"]: r for r in telemetry(out, i)}
+        recs = {r.round: r for r in telemetry(out, i)}
         late = [k for k in recs if k > netem["robot_rounds"][str(i)] + 1]
         assert late and max(recs) == ROUNDS and (out / f"robots/{i}/done.json").is_file()
         # whole snapshots (~0.25 MB at ~30 KB/s of TCP goodput at this loss and delay) still cross the link
-        assert sum(int(recs[k]["bytes_in"].get(str(peer), 0)) for k in late) > 200_000, {k: recs[k]["bytes_in"] for k in recs}
+        assert sum(recs[k].bytes_in.get(peer, 0) for k in late) > 200_000, {k: recs[k].bytes_in for k in recs}
     relay_log = out / "logs/relay-1-2.log"
     if relay_log.is_file():  # the userspace emulator (no sch_netem here): it really dropped packets ...
         events = [json.loads(l) for l in relay_log.read_text().splitlines() if l.startswith("{")]
@@ -285,7 +286,7 @@ def test_lossy_slow_link_still_carries_the_model(tmp_path, fault_free):
         assert final["loss"] == 0.1 and sum(final[d]["dropped"] for d in ("to1->to2", "to2->to1")) > 0
         # ... and the snapshots themselves went through it (not through Zenoh's shared memory)
         crossed = final["to1->to2"]["bytes"] - at_set["to1->to2"]["bytes"]
-        received = sum(int(r["bytes_in"].get("1", 0)) for r in telemetry(out, 2) if r["round"] > netem["robot_rounds"]["2"] + 1)
+        received = sum(r.bytes_in.get(1, 0) for r in telemetry(out, 2) if r.round > netem["robot_rounds"]["2"] + 1)
         assert crossed >= 0.9 * received > 0, (crossed, received)
     for i in (1, 2, 3, 4):
         assert abs(final_psnr(report, i) - final_psnr(fault_free[1], i)) < 1.0

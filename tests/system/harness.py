@@ -17,6 +17,9 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from agent.checkpoint import RunFolder
+from agent.telemetry import RoundRecord, read_events, read_telemetry
+
 REPO = Path(__file__).resolve().parents[2]
 AGENT = [sys.executable, "-m", "cli"]
 
@@ -98,17 +101,11 @@ class Swarm:
         self.procs[i].wait(timeout=10)
         return t
 
-    def telemetry(self, i: int) -> list[dict]:
-        path = self.run_dir(i) / "telemetry.jsonl"
-        if not path.is_file():
-            return []
-        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    def telemetry(self, i: int) -> list[RoundRecord]:
+        return read_telemetry(RunFolder(self.run_dir(i), create=False).telemetry)
 
     def events(self, i: int) -> list[dict]:
-        path = self.run_dir(i) / "events.jsonl"
-        if not path.is_file():
-            return []
-        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+        return read_events(RunFolder(self.run_dir(i), create=False).events)
 
     def done(self, i: int) -> dict | None:
         path = self.run_dir(i) / "done.json"
@@ -118,7 +115,7 @@ class Swarm:
         t0 = time.monotonic()
         while time.monotonic() - t0 < timeout:
             tel = self.telemetry(i)
-            if tel and tel[-1]["round"] >= round_index:
+            if tel and tel[-1].round >= round_index:
                 return
             if self.procs[i].poll() is not None:
                 raise AssertionError(f"robot {i} exited early:\n{self.log_text(i)}")
