@@ -28,7 +28,8 @@ def up(
     overrides: list[str] = typer.Option([], "--set", help="Override a swarm-file setting, e.g. --set training.rounds=5 (repeatable)."),
 ) -> None:
     """Join the swarm and train: one robot's daemon (resumes from --run-dir if it holds a checkpoint)."""
-    from agent.daemon import SFM_CACHE, Daemon
+    from agent.checkpoint import SFM_CACHE
+    from agent.daemon import Daemon
     from agent.data.folder import read_scene
     from agent.data.loaders import load_views
     from cli.swarm_file import find_swarm_file, load_swarm_file

@@ -1,7 +1,7 @@
 """The report of one scenario run: what each robot achieved, round by round, against the truth.
 
 Per robot and per evaluated round k (from the daemon's ``rounds/<k>.pt`` snapshots, through
-``agent.daemon.load_for_eval``): PSNR/SSIM on the held-out views of the whole scene and on the
+``agent.checkpoint.load_for_eval``): PSNR/SSIM on the held-out views of the whole scene and on the
 held-out views only *other* robots saw (``agent.evaluation``), the pose error against
 ``truth.json``, and the consensus disagreement ``||theta_i - mean|| / ||mean||`` among the robots
 that have a snapshot of that round. From telemetry: loss, bytes per link, seconds per step and
@@ -31,10 +31,12 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from agent.checkpoint import RunFolder
+from agent.telemetry import read_telemetry
 from cli.config import from_dict
 from cli.scenario.spec import ScenarioSpec
 
-__all__ = ["build_report", "load_run_spec", "read_jsonl"]
+__all__ = ["build_report", "load_run_spec"]
 
 
 def _mean(xs) -> float | None:
@@ -62,21 +64,8 @@ def load_run_spec(out: Path) -> ScenarioSpec:
     return spec
 
 
-def read_jsonl(path: Path) -> list[dict]:
-    """The records of a robot's JSON-lines file (telemetry, events); none if it is absent."""
-    if not path.is_file():
-        return []
-    out = []
-    for line in path.read_text().splitlines():
-        try:
-            out.append(json.loads(line))
-        except json.JSONDecodeError:
-            pass  # a line cut by SIGKILL
-    return out
-
-
 def _snapshot_rounds(run_dir: Path) -> list[int]:
-    return sorted(int(p.stem) for p in (run_dir / "rounds").glob("*.pt") if p.stem.isdigit())
+    return RunFolder(run_dir, create=False).snapshot_rounds()
 
 
 def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[str], None] = print) -> dict:
@@ -84,7 +73,7 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
     import torch
 
     from agent.consensus import disagreement
-    from agent.daemon import load_for_eval
+    from agent.checkpoint import load_for_eval
     from agent.evaluation import EvalSet, evaluate_robot
 
     out = Path(out)
@@ -96,7 +85,7 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
     ids = spec.ids
     t0 = time.monotonic()
 
-    telemetry = {i: read_jsonl(out / "robots" / str(i) / "telemetry.jsonl") for i in ids}
+    telemetry = {i: read_telemetry(out / "robots" / str(i) / "telemetry.jsonl") for i in ids}
     snaps = {i: _snapshot_rounds(out / "robots" / str(i)) for i in ids}
     notes: list[str] = []
     if evalset.needs_calibration:
@@ -147,31 +136,29 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
         recs = telemetry[i]
         by_round: dict[int, dict] = {}
         for r in recs:
-            k = int(r.get("round", 0))
-            by_round[k] = {
-                "loss": r.get("loss"), "own_psnr": r.get("psnr"), "heard": r.get("heard"),
-                "live_neighbours": r.get("live_neighbours"), "reference": r.get("reference"),
-                "bytes_in": r.get("bytes_in", {}), "bytes_out": r.get("bytes_out"),
-                "seconds_compute": r.get("seconds_compute"), "seconds_wait": r.get("seconds_wait"),
-                "seconds_per_step": r.get("seconds_per_step"), "steps": r.get("steps"), "time": r.get("time"),
+            by_round[r.round] = {
+                "loss": r.loss, "own_psnr": r.psnr, "heard": r.heard, "live_neighbours": r.live_neighbours,
+                "reference": r.reference, "bytes_in": {str(j): b for j, b in r.bytes_in.items()},
+                "bytes_out": r.bytes_out, "seconds_compute": r.seconds_compute, "seconds_wait": r.seconds_wait,
+                "seconds_per_step": r.seconds_per_step, "steps": r.steps, "time": r.time,
             }
-            for sender, b in (r.get("bytes_in") or {}).items():
+            for sender, b in r.bytes_in.items():
                 key = f"{sender}->{i}"
                 links[key] = links.get(key, 0) + int(b)
         rounds_doc = {}
         for k in sorted(set(by_round) | set(per_round[i])):
             rounds_doc[str(k)] = {**by_round.get(k, {}), **per_round[i].get(k, {})}
         final_k = max(per_round[i]) if per_round[i] else None
-        sps = [r.get("seconds_per_step") for r in recs]
+        sps = [r.seconds_per_step for r in recs]
         robots[str(i)] = {
             "rounds": rounds_doc,
             "final_round": final_k,
             "final": per_round[i].get(final_k, {}) if final_k is not None else {},
             "seconds_per_step_mean": _mean(sps),
-            "seconds_compute_total": sum(r.get("seconds_compute") or 0 for r in recs),
-            "seconds_wait_total": sum(r.get("seconds_wait") or 0 for r in recs),
-            "bytes_out_total": sum(r.get("bytes_out") or 0 for r in recs),
-            "rejected": (recs[-1].get("rejected") if recs else {}) or {},
+            "seconds_compute_total": sum(r.seconds_compute for r in recs),
+            "seconds_wait_total": sum(r.seconds_wait for r in recs),
+            "bytes_out_total": sum(r.bytes_out for r in recs),
+            "rejected": recs[-1].rejected if recs else {},
             "rounds_logged": len(recs),
             "starts": run.get("robots", {}).get(str(i), {}).get("starts"),
             "state": run.get("robots", {}).get(str(i), {}).get("state"),
@@ -226,7 +213,7 @@ def _calibrate_frames(evalset, out: Path, snaps: dict[int, list[int]], echo) -> 
     The cameras are those of the robot's trainer as ``load_for_eval`` rebuilds it, i.e. its SfM
     frame exactly as it trained in, whatever the daemon did to the SfM's output.
     """
-    from agent.daemon import load_for_eval
+    from agent.checkpoint import load_for_eval
     from agent.data.views import DataError
 
     notes = ["images only: each robot's local frame is its own SfM; it is aligned to the world by a Sim(3) fit "

@@ -159,13 +159,13 @@ def test_report_calibrates_frames_and_trains_alone_in_them(tmp_path, monkeypatch
     monkeypatch.setitem(sys.modules, "agent.data.sfm", _fake_sfm(truth))
 
     # the report's calibration, on the cameras of the trainers load_for_eval rebuilds
-    import agent.daemon
+    import agent.checkpoint
 
     def fake_load_for_eval(run_dir, data_dir, round=None):
         views = load_views(data_dir, width=24)
         return SimpleNamespace(views=views, refined_views=lambda: views)  # cameras as trained (no refinement)
 
-    monkeypatch.setattr(agent.daemon, "load_for_eval", fake_load_for_eval)
+    monkeypatch.setattr(agent.checkpoint, "load_for_eval", fake_load_for_eval)
     evalset = EvalSet.from_dir(out / "data")
     notes = report_mod._calibrate_frames(evalset, out, {1: [0], 2: []}, echo=lambda _: None)
     assert torch.allclose(evalset.T_world_from_local[1], sim3_inverse(SFM[1]), atol=1e-5)

@@ -46,12 +46,12 @@ def test_three_robots_on_a_line_match_the_in_process_simulation(tmp_path):
     # What crossed each link, and where the time went (the figures issue 4 asks for).
     for i in swarm.robots:
         tel = swarm.telemetry(i)
-        assert [t["round"] for t in tel] == [1, 2, 3, 4, 5]
-        assert all(t["heard"] == t["reachable"] == t["live_neighbours"] for t in tel), "a snapshot was missed"
-        per_link = {j: statistics.fmean(t["bytes_in"].get(j, 0) for t in tel[1:]) for j in map(str, tel[0]["heard"])}
-        compute = statistics.fmean(t["seconds_compute"] for t in tel)
-        wait = statistics.fmean(t["seconds_wait"] for t in tel)
-        print(f"robot {i}: bytes in per link per round {per_link}, out {statistics.fmean(t['bytes_out'] for t in tel[1:]):.0f}; "
+        assert [t.round for t in tel] == [1, 2, 3, 4, 5]
+        assert all(t.heard == t.reachable == t.live_neighbours for t in tel), "a snapshot was missed"
+        per_link = {j: statistics.fmean(t.bytes_in.get(j, 0) for t in tel[1:]) for j in tel[0].heard}
+        compute = statistics.fmean(t.seconds_compute for t in tel)
+        wait = statistics.fmean(t.seconds_wait for t in tel)
+        print(f"robot {i}: bytes in per link per round {per_link}, out {statistics.fmean(t.bytes_out for t in tel[1:]):.0f}; "
               f"compute {compute:.2f} s, waiting {wait:.2f} s per round")
         assert all(b > 0 for b in per_link.values())
 
@@ -93,12 +93,12 @@ def test_killing_a_non_reference_robot_the_others_finish_as_well_as_without_the_
     finally:
         swarm.stop()
     sim = simulate(swarm)  # the fault-free run (bit-identical to a fault-free daemon run)
-    from agent.daemon import load_for_eval
+    from agent.checkpoint import load_for_eval
 
     for i in (1, 2):
         tel = swarm.telemetry(i)
-        assert tel[-1]["round"] == 5 and swarm.done(i) is not None
-        assert 3 not in tel[-1]["live_neighbours"]
+        assert tel[-1].round == 5 and swarm.done(i) is not None
+        assert 3 not in tel[-1].live_neighbours
         faulty = load_for_eval(swarm.run_dir(i), swarm.root / f"robot{i}")
         holdout = sim.robots[i].holdout
         p_fault, p_clean = _own_holdout_psnr(faulty, holdout), _own_holdout_psnr(sim.robots[i].trainer, holdout)
@@ -140,17 +140,17 @@ def test_reference_failover_keeps_the_frame_and_a_restarted_robot_resumes(tmp_pa
 
     for i in (2, 3):  # no jump across the failover
         tel = swarm.telemetry(i)
-        kill_round = max(t["round"] for t in tel if t["monotonic"] < t_kill)
-        before = next(t for t in tel if t["round"] == kill_round)
-        after = next(t for t in tel if t["round"] == kill_round + 1)
-        change = _pose_angle_change(before["pose"], after["pose"])
+        kill_round = max(t.round for t in tel if t.monotonic < t_kill)
+        before = next(t for t in tel if t.round == kill_round)
+        after = next(t for t in tel if t.round == kill_round + 1)
+        change = _pose_angle_change(before.pose, after.pose)
         print(f"robot {i}: pose change across the failover round {kill_round} -> {kill_round + 1}: {change:.4f} deg")
         assert change < 0.1
 
     resumed = [e for e in swarm.events(1) if e["event"] == "resumed"]
     assert resumed and resumed[-1]["from_round"] >= 2, swarm.log_text(1)
     tel1 = swarm.telemetry(1)
-    assert tel1[-1]["round"] == 16 and swarm.done(1) is not None
+    assert tel1[-1].round == 16 and swarm.done(1) is not None
     assert len(tel1) > 3, "robot 1 should have trained rounds with the others after its restart"
     joined = [e for e in swarm.events(1) if e["event"] in ("joined", "caught_up")]
     print(f"robot 1 resumed at round {resumed[-1]['from_round']}, then {[(e['event'], e['to_round']) for e in joined]}")
@@ -197,11 +197,11 @@ def test_coarse_alignment_over_zenoh_starts_near_the_true_relative_pose(tmp_path
     assert start and start[0]["event"] == "aligned", swarm.log_text(2)
     kf = [e for e in swarm.events(2) if e["event"] == "keyframes"][0]
     tel = swarm.telemetry(2)[-1]
-    err = pose_error(torch.tensor(tel["pose"], dtype=torch.float64), truth)
+    err = pose_error(torch.tensor(tel.pose, dtype=torch.float64), truth)
     identity_err = pose_error(torch.eye(4, dtype=torch.float64), truth)
     print(f"keyframe summary {kf['bytes'] / 1e3:.0f} kB for {kf['image_bytes'] / 1e6:.2f} MB of images; "
           f"start error {err['rotation_deg']:.2f} deg / {err['translation']:.3f} (identity start: "
-          f"{identity_err['rotation_deg']:.1f} deg / {identity_err['translation']:.2f}); {tel['alignment']}")
+          f"{identity_err['rotation_deg']:.1f} deg / {identity_err['translation']:.2f}); {tel.alignment}")
     assert identity_err["rotation_deg"] > 20  # the test means something: the frames really differ
     assert err["rotation_deg"] < 3.0 and err["translation"] < 0.1
     assert kf["image_width"] == 64, kf  # the folder's images, not the 32 px it trains at
@@ -216,7 +216,7 @@ def test_field_box_unknown_to_the_split_comes_from_the_reference_through_the_lin
     robot 2 to robot 3, which is not the reference's neighbour. Every robot must end with the same box
     bit for bit (else C-ADMM would mix parameters of different fields: bad_signature everywhere).
     """
-    from agent.daemon import CHECKPOINT
+    from agent.checkpoint import CHECKPOINT
     from agent.data.loaders import load_views
     from agent.data.split import estimate_scene_box
     from agent.geometry import box_from_center
@@ -244,7 +244,7 @@ def test_field_box_unknown_to_the_split_comes_from_the_reference_through_the_lin
         tel = swarm.telemetry(i)
         assert len(tel) == 2 and swarm.done(i)["rejected"] == {}, (i, swarm.done(i), swarm.log_text(i))
         line = {1: {2}, 2: {1, 3}, 3: {2}}
-        assert all(set(r["heard"]) == line[i] for r in tel), (i, tel)
+        assert all(set(r.heard) == line[i] for r in tel), (i, tel)
 
 
 def test_a_neighbour_whose_token_outlives_its_link_is_not_waited_for(tmp_path):
@@ -268,9 +268,9 @@ def test_a_neighbour_whose_token_outlives_its_link_is_not_waited_for(tmp_path):
     silent_after = DaemonConfig().silent_after_s
     for i, other in ((1, 2), (2, 1)):
         tel = swarm.telemetry(i)
-        assert [t["round"] for t in tel] == [1, 2, 3, 4, 5]
-        assert all(3 in t["live_neighbours"] and t["heard"] == [other] for t in tel), tel  # token seen, nothing heard
-        waits = [round(t["seconds_wait"], 2) for t in tel]
+        assert [t.round for t in tel] == [1, 2, 3, 4, 5]
+        assert all(3 in t.live_neighbours and t.heard == [other] for t in tel), tel  # token seen, nothing heard
+        waits = [round(t.seconds_wait, 2) for t in tel]
         print(f"robot {i}: waits per round with a mute neighbour {waits} s (silent_after_s {silent_after})")
         assert max(waits) < silent_after + 2, waits  # never the 30 s round timeout
         assert any(e["event"] == "silent" and e["sender"] == 3 for e in swarm.events(i))

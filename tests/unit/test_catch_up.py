@@ -1,6 +1,6 @@
 """The laggard's choice after a cut heals or a robot was slow: train through the gap or skip it."""
 
-from agent.daemon import plan_catch_up
+from protocol.exchange import plan_catch_up
 
 
 def test_in_step_or_one_round_behind_needs_nothing():

@@ -1,6 +1,6 @@
 """PullPacing: pull late from a neighbour whose pushes are slow, early again once they are fast."""
 
-from agent.daemon import PullPacing
+from protocol.exchange import PullPacing
 
 
 def test_a_wasted_pull_doubles_the_delay_up_to_the_cap_either_order():

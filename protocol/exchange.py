@@ -1,0 +1,366 @@
+"""Exchange policy: how a robot's snapshots reach its neighbours and theirs reach it, per round.
+
+Pure policy over a :class:`protocol.network.Network` (no torch, no Zenoh): one sender and one
+puller thread per neighbour, so a slow or cut link delays only that neighbour's copy; the
+mailbox of received snapshots; the round barrier (whom it waits for, whom it gives up on,
+whose newer snapshot stands in); and :func:`plan_catch_up` for a robot that fell behind.
+The daemon decides what to do with the snapshots; this module only moves and validates them.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Literal, Mapping
+
+from protocol import codec
+from protocol.keys import Keys
+from protocol.membership import LastHeard
+from protocol.messages import ModelSpec, Rejected, ThetaSnapshot
+from protocol.network import Network
+from protocol.rounds import Mailbox
+
+__all__ = ["ExchangeTiming", "SnapshotExchange", "NeighbourSender", "NeighbourPuller", "PullPacing", "plan_catch_up"]
+
+Log = Callable[[str], None]  # a line of the robot's log (the caller prefixes who speaks)
+Event = Callable[..., None]  # event(kind, **fields)
+Reject = Callable[[str, str], None]  # reject(reason, detail)
+
+
+class _NewestJobThread:
+    """One job at a time on its own thread, keeping only the newest job offered meanwhile.
+
+    A job is for a round; an older job still waiting is replaced by a newer one, since nobody
+    wants it any more. Subclasses say what a job does (:meth:`_do`).
+    """
+
+    def __init__(self, name: str, log: Log) -> None:
+        self._log = log
+        self._cond = threading.Condition()
+        self._slot: tuple[int, Any] | None = None
+        self._not_before = 0.0
+        self._busy = False
+        self._closed = False
+        self.last_seconds = 0.0  # duration of the last job (e.g. how long a link held a put)
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def offer(self, round_index: int, data: Any = None, delay_s: float = 0.0) -> None:
+        with self._cond:
+            if self._slot is not None and self._slot[0] > round_index:
+                return  # a newer job is already waiting
+            self._slot = (round_index, data)
+            self._not_before = time.monotonic() + delay_s
+            self._cond.notify_all()
+
+    def idle(self, timeout: float) -> bool:
+        """Wait until nothing is pending or in flight (e.g. before exiting)."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._slot is None and not self._busy, timeout)
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    def _do(self, round_index: int, data: Any) -> None:
+        raise NotImplementedError
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._slot is not None or self._closed)
+                if self._closed:
+                    return
+                pause = self._not_before - time.monotonic()
+                if pause > 0:
+                    self._cond.wait(pause)  # an offer meanwhile may replace the slot
+                    continue
+                round_index, data = self._slot
+                self._slot = None
+                self._busy = True
+            t0 = time.monotonic()
+            try:
+                self._do(round_index, data)
+            except Exception as e:  # the transport is closing, or the link is gone: log, go on
+                self._log(f"round {round_index}: {type(e).__name__}: {e}")
+            self.last_seconds = time.monotonic() - t0
+            with self._cond:
+                self._busy = False
+                self._cond.notify_all()
+
+
+class NeighbourSender(_NewestJobThread):
+    """Delivers this robot's newest snapshot to one neighbour.
+
+    A put with congestion control BLOCK can wait on a cut or congested link for seconds; with
+    one sender per neighbour (and keys addressed to that neighbour) it delays that neighbour's
+    copy only, never the round loop nor the other neighbours.
+    """
+
+    def __init__(self, net: Network, key_for_round: Callable[[int], str], log: Log) -> None:
+        self._net = net
+        self._key = key_for_round
+        super().__init__("sender", log)
+
+    def _do(self, round_index: int, data: bytes) -> None:
+        self._net.publish(self._key(round_index), data)
+
+
+class NeighbourPuller(_NewestJobThread):
+    """Asks one neighbour for its snapshot of a round or later, through its ``latest`` queryable.
+
+    Pushes can be lost: a put made while a link was being re-established found no subscriber,
+    and a link can come back one-sided (the far end does not see our subscription; measured
+    after a SIGSTOP). So the barrier asks for what is missing. The query runs here, not in the
+    round loop: over a link that is dying it waits out its timeout, and that must hold up
+    nobody. The neighbour answers only once it has that round, so asking early costs no bytes.
+    """
+
+    def __init__(self, pull: Callable[[int], None], log: Log) -> None:
+        self._pull = pull
+        super().__init__("puller", log)
+
+    def _do(self, round_index: int, data: Any) -> None:
+        self._pull(round_index)
+
+
+class PullPacing:
+    """How long the barrier waits for a neighbour's push before asking for the snapshot (a pull).
+
+    Asking too early duplicates a push that is merely slow: on a link with 100 ms and 10% loss,
+    pulls after a fixed 2 s made it carry 1.5x the bytes (measured, fault-lossy-link). Asking
+    too late leaves a lost push to the barrier deadline. So each neighbour has its own delay:
+    doubled (up to ``max_s``) when a pull fetched a round its push delivered too, halved (down
+    to ``base_s``) when its push arrives within half the delay or when the push of the round
+    pulled before never came (that pull was needed: a one-sided link). Thread-safe.
+    """
+
+    def __init__(self, base_s: float, max_s: float) -> None:
+        self.base_s = base_s
+        self.max_s = max(max_s, base_s)
+        self._lock = threading.Lock()
+        self._delay: dict[int, float] = {}
+        self._pulled: dict[int, int] = {}  # neighbour -> round of its last pulled snapshot
+        self._pushed: dict[int, int] = {}  # neighbour -> round of its last pushed snapshot
+        self._doubled_for: dict[int, int] = {}  # a round counted once as a wasted pull
+
+    def delay(self, j: int) -> float:
+        with self._lock:
+            return self._delay.get(j, self.base_s)
+
+    def pulled(self, j: int, round_index: int) -> None:
+        with self._lock:
+            before = self._pulled.get(j)
+            if before is not None and before < round_index and self._pushed.get(j, -1) < before:
+                self._halve(j)
+            self._pulled[j] = round_index
+            self._wasted(j, round_index)
+
+    def pushed(self, j: int, round_index: int, waited_s: float) -> None:
+        """A push of ``round_index`` arrived ``waited_s`` after our barrier for it began (0: before)."""
+        with self._lock:
+            self._pushed[j] = round_index
+            if not self._wasted(j, round_index) and waited_s < self._delay.get(j, self.base_s) / 2:
+                self._halve(j)
+
+    def _halve(self, j: int) -> None:
+        self._delay[j] = max(self.base_s, self._delay.get(j, self.base_s) / 2)
+
+    def _wasted(self, j: int, round_index: int) -> bool:
+        if (self._pulled.get(j) == round_index == self._pushed.get(j)
+                and self._doubled_for.get(j) != round_index):
+            self._doubled_for[j] = round_index
+            self._delay[j] = min(2 * self._delay.get(j, self.base_s), self.max_s)
+            return True
+        return False
+
+
+def plan_catch_up(round_index: int, newest: Mapping[int, int | None], round_compute_s: float | None,
+                  max_neighbour_wait_s: float) -> tuple[Literal["train", "skip"], int] | None:
+    """What a robot at ``round_index`` does about neighbours two or more rounds ahead (their newest
+    snapshot rounds in ``newest``): nothing (None), train through to their round (their snapshots
+    stand in meanwhile; no steps lost) when that keeps them waiting at most ``max_neighbour_wait_s``,
+    or skip to their round. Without a measured round time (just started) it skips."""
+    ahead = [r for r in newest.values() if r is not None and r > round_index + 1]
+    if not ahead:
+        return None
+    target = max(ahead)
+    if round_compute_s is not None and (target - round_index) * round_compute_s <= max_neighbour_wait_s:
+        return "train", target
+    return "skip", target
+
+
+@dataclass(frozen=True)
+class ExchangeTiming:
+    """The clocks of the exchange (the daemon's settings of the same names)."""
+
+    round_timeout_s: float  # the barrier's deadline
+    pull_after_s: float  # a missing snapshot is asked for after this (then per PullPacing)
+    silent_after_s: float  # a neighbour that sent nothing for this long is not waited for
+    join_timeout_s: float  # timeout of a query for a neighbour's newest snapshot
+    resend_delay_s: float  # re-push our snapshot this long after a neighbour's link appears
+
+
+class SnapshotExchange:
+    """This robot's snapshots out, its neighbours' in: push, pull, mailbox and the round barrier."""
+
+    def __init__(self, net: Network, keys: Keys, robot_id: int, neighbours: frozenset[int],
+                 mailbox: Mailbox[ThetaSnapshot], last_heard: LastHeard, timing: ExchangeTiming,
+                 stop: threading.Event, log: Log, event: Event, reject: Reject) -> None:
+        self.net, self.keys, self.robot_id, self.neighbours = net, keys, robot_id, neighbours
+        self.mailbox, self.last_heard, self.timing, self._stop = mailbox, last_heard, timing, stop
+        self._log, self._event, self._reject = log, event, reject
+        self.expect: codec.Expectation | None = None  # None: our model is provisional, take nothing
+        self._pacing = PullPacing(timing.pull_after_s, timing.round_timeout_s / 4)
+        self._senders: dict[int, NeighbourSender] = {}
+        self._pullers: dict[int, NeighbourPuller] = {}
+        self._barrier_began: tuple[int, float] = (-1, 0.0)  # (round, monotonic) of the current barrier
+        self.latest: tuple[int, bytes] | None = None  # (round, encoded) last published
+
+    def start(self) -> None:
+        """Subscribe to every neighbour's snapshots addressed to us; one sender and puller each."""
+        me = self.robot_id
+        for j in sorted(self.neighbours):
+            self.net.subscribe(self.keys.theta_for(j, me), self.on_theta)
+            self._senders[j] = NeighbourSender(
+                self.net, lambda k, j=j: self.keys.theta(me, k, to=j),
+                lambda text, j=j: self._log(f"snapshot to robot {j} not sent: {text}"))
+            self._pullers[j] = NeighbourPuller(
+                lambda k, j=j: self.pull_latest(j, min_round=k),
+                lambda text, j=j: self._log(f"asking robot {j} for its snapshot: {text}"))
+
+    def wait_sent(self, timeout_s: float) -> None:
+        """Wait up to ``timeout_s`` until every sender has delivered what it was given."""
+        deadline = time.monotonic() + timeout_s
+        for sender in self._senders.values():
+            sender.idle(max(deadline - time.monotonic(), 0.0))
+
+    def close(self) -> None:
+        for worker in [*self._senders.values(), *self._pullers.values()]:
+            worker.close()
+
+    def last_put_seconds(self) -> dict[int, float]:
+        return {j: round(s.last_seconds, 3) for j, s in self._senders.items()}
+
+    # ------------------------------------------------------------------ out
+    def publish(self, msg: ThetaSnapshot, spec: ModelSpec, wire_dtype: str, compression: str) -> None:
+        """Encode once; serve it as ``latest``; hand a copy to every neighbour's sender."""
+        data = codec.encode(msg, wire_dtype=wire_dtype, compression=compression, spec=spec)
+        self.net.set_latest(data, round=msg.round)
+        self.latest = (msg.round, data)
+        for sender in self._senders.values():
+            sender.offer(msg.round, data)
+
+    def link_appeared(self, j: int) -> None:
+        """A link (re)appeared: snapshots pushed meanwhile found no subscriber. Push ours again
+        once the new session's subscriptions are through (the barrier pulls theirs)."""
+        latest = self.latest
+        if latest is not None and j in self._senders:
+            self._senders[j].offer(*latest, delay_s=self.timing.resend_delay_s)
+
+    # ------------------------------------------------------------------ in
+    def on_theta(self, key: str, data: bytes) -> None:
+        expect = self.expect
+        if expect is None:
+            return  # our spec is provisional until the box is known; the barrier pulls it later
+        try:
+            parsed = self.keys.parse(key)
+            if parsed.receiver != self.robot_id:
+                raise Rejected("bad_kind", f"snapshot addressed to robot {parsed.receiver}")
+            msg = codec.decode(data, expect, kind="theta", key=parsed)
+            self.last_heard.heard(msg.sender)
+            self.mailbox.offer(msg.sender, msg.round, msg)
+            barrier_round, began = self._barrier_began
+            waited = time.monotonic() - began if msg.round == barrier_round else 0.0
+            self._pacing.pushed(msg.sender, msg.round, waited)
+        except Rejected as e:
+            self._reject(e.reason, f"{key}: {e.detail}")
+        except ValueError as e:  # a foreign key on our subscription
+            self._reject("garbage", f"{key}: {e}")
+
+    def fetch_latest(self, j: int, block: bool = True, min_round: int = 0) -> ThetaSnapshot | None:
+        """Neighbour j's newest snapshot if of ``min_round`` or later, from its ``latest``
+        queryable, validated; None if none came."""
+        if self.expect is None:
+            return None
+        data = self.net.query(self.keys.latest_since(j, min_round), timeout=self.timing.join_timeout_s, block=block)
+        if data is None:
+            return None
+        try:
+            msg = codec.decode(data, self.expect, kind="theta")
+        except Rejected as e:
+            self._reject(e.reason, f"latest of robot {j}: {e.detail}")
+            return None
+        return msg if msg.sender == j else None
+
+    def pull_latest(self, j: int, min_round: int) -> None:
+        """Fetch neighbour j's newest snapshot into the mailbox if it is not older than min_round."""
+        # block=False: the link to j may be dying (see ZenohTransport.query)
+        msg = self.fetch_latest(j, block=False, min_round=min_round)
+        if msg is not None and msg.round >= min_round:
+            self.offer_quietly(j, msg)
+            self._pacing.pulled(j, msg.round)
+            self._event("pulled", sender=j, snapshot_round=msg.round, next_pull_after_s=self._pacing.delay(j))
+
+    def offer_quietly(self, sender: int, msg: ThetaSnapshot) -> None:
+        try:
+            self.mailbox.offer(sender, msg.round, msg)
+        except Rejected:
+            pass
+
+    # ------------------------------------------------------------------ the barrier
+    def barrier(self, round_index: int, reachable: Callable[[], set[int]]) -> tuple[dict[int, ThetaSnapshot], float]:
+        """Neighbours' round-k snapshots, waiting until every reachable neighbour answered or the deadline.
+
+        Pushes can be lost, so a neighbour still missing after its pull delay (:class:`PullPacing`)
+        is asked for its round-k snapshot, or a later one, in the background
+        (:class:`NeighbourPuller`). A neighbour whose newest snapshot is already for a later round
+        passed round k without us (its round-k push was lost while the link was down) and waits
+        for *our* next snapshot: its newer snapshot stands in for round k, or both sides would
+        wait out ``round_timeout_s``. ``reachable()``: the live neighbours whose tokens we see.
+        """
+        awaited = self._awaited(round_index, reachable)
+        t0 = time.monotonic()
+        self._barrier_began = (round_index, t0)
+        deadline = t0 + self.timing.round_timeout_s
+        while True:
+            slice_s = max(min(self.timing.pull_after_s, deadline - time.monotonic()), 0.0)
+            got = self.mailbox.wait(round_index, awaited, slice_s)
+            if got.complete or time.monotonic() >= deadline or self._stop.is_set():
+                break
+            for j in sorted(got.missing):
+                if j in self._pullers and time.monotonic() - t0 >= self._pacing.delay(j):
+                    self._pullers[j].offer(round_index)
+        got = self.mailbox.wait(round_index, awaited, 0.0)
+        waited = time.monotonic() - t0
+        if not got.complete:
+            self._log(f"round {round_index}: no snapshot from {sorted(got.missing)} "
+                      f"within {self.timing.round_timeout_s:.0f} s; going on with {sorted(got.items)}")
+        items = dict(got.items)
+        newest_of = self.mailbox.newest_items()
+        for j in reachable() - items.keys():
+            newest = newest_of.get(j)
+            if newest is not None and newest[0] > round_index:
+                items[j] = newest[1]
+                self._event("ahead", sender=j, snapshot_round=newest[0])
+        return {j: items[j] for j in sorted(items) if j in self.neighbours}, waited
+
+    def _awaited(self, round_index: int, reachable: Callable[[], set[int]]) -> Callable[[], set[int]]:
+        """Whom the barrier of ``round_index`` waits for: reachable neighbours without a snapshot of
+        that round or later, except those silent for ``silent_after_s`` (reported once each)."""
+        given_up: set[int] = set()
+
+        def awaited() -> set[int]:
+            missing = {j for j in reachable()
+                       if (r := self.mailbox.newest_round(j)) is None or r <= round_index}
+            silent = self.last_heard.silent(missing, self.timing.silent_after_s)
+            for j in silent - given_up:
+                given_up.add(j)
+                self._event("silent", sender=j, silence_s=round(self.last_heard.silence_s(j), 2))
+                self._log(f"round {round_index}: robot {j} sent nothing for "
+                          f"{self.timing.silent_after_s:.0f} s though its token is still seen; not waiting for it")
+            return missing - silent
+
+        return awaited

@@ -1,0 +1,51 @@
+"""What a robot needs from the network, as a protocol: the seam between transport and daemon.
+
+:class:`protocol.transport.ZenohTransport` implements it over Zenoh and
+:class:`protocol.loopback.LoopbackNetwork` in memory (one process, for tests of the daemon's
+logic). The daemon only ever talks to this interface, as rmw_zenoh keeps the middleware behind
+the ROS 2 client library. Keys are built by :class:`protocol.keys.Keys`; payloads are bytes from
+:mod:`protocol.codec`. Callbacks run on the network's threads: keep them short and never call a
+blocking method (``query``, ``publish``) from one.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Protocol
+
+__all__ = ["Network", "Handle"]
+
+
+class Handle(Protocol):
+    """A subscription or watch; ``undeclare`` stops its callbacks."""
+
+    def undeclare(self) -> None: ...
+
+
+class Network(Protocol):
+    def declare_alive(self) -> None:
+        """Hold this robot's liveliness token until the network is closed (or the process dies)."""
+
+    def watch_alive(self, callback: Callable[[frozenset[int]], None]) -> Handle:
+        """``callback(ids)`` with the full set of robots whose tokens are seen, on every change."""
+
+    def subscribe(self, key_expr: str, callback: Callable[[str, bytes], None]) -> Handle:
+        """``callback(key, data)`` for every put matching ``key_expr`` (``*`` = one key segment)."""
+
+    def publish(self, key: str, data: bytes, block: bool = True) -> None:
+        """Reliable put; ``block=False`` for periodic messages, which may be dropped under congestion."""
+
+    def set_latest(self, data: bytes | None, round: int | None = None) -> None:
+        """Serve our newest snapshot (of ``round``) on ``latest/<id>``; a ``min_round`` query gets
+        it only if ``round`` is at least that."""
+
+    def set_keyframes(self, data: bytes | None) -> None:
+        """Serve our keyframe summary on ``keyframes/<id>``."""
+
+    def query(self, key: str, timeout: float | None = None, block: bool = True) -> bytes | None:
+        """The first reply to a get on ``key``, or None if nobody answered in time."""
+
+    def stats(self) -> dict[str, Any]:
+        """Traffic counters: ``bytes_in`` {sender: n}, ``bytes_out`` {kind: n}, their totals ..."""
+
+    def close(self) -> None:
+        """Leave: the token goes, callbacks stop. Idempotent."""
