@@ -42,6 +42,7 @@ import cv2
 import numpy as np
 import torch
 
+from agent.camera import camera_directions, opencv_to_pixel, optical_axis, pixel_to_opencv, project_points
 from agent.data.views import Views
 from agent.geometry import sim3_from_params, sim3_inverse, so3_exp, umeyama, umeyama_batched
 from protocol.messages import KEYFRAME_CAMERA_DIM
@@ -217,7 +218,7 @@ class AlignmentResult:
 
 
 # --------------------------------------------------------------------------------------------
-# Camera helpers (Views conventions: OpenGL c2w, pixel centre of column u at u + 0.5)
+# Camera helpers: SIFT gives OpenCV keypoint coordinates, the rest is agent.camera's convention
 
 
 def _grey_uint8(image: torch.Tensor | np.ndarray) -> np.ndarray:
@@ -231,11 +232,8 @@ def _grey_uint8(image: torch.Tensor | np.ndarray) -> np.ndarray:
 
 def _rays(c2w: np.ndarray, intr: np.ndarray, xy_cv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """OpenCV keypoint coordinates [N, 2] -> (origin [3], unit directions [N, 3]) in the local frame."""
-    fx, fy, cx, cy = intr
-    u = xy_cv[:, 0] + 0.5
-    v = xy_cv[:, 1] + 0.5
-    d_cam = np.stack([(u - cx) / fx, -(v - cy) / fy, -np.ones_like(u)], 1)
-    d = d_cam @ c2w[:3, :3].T
+    uv = opencv_to_pixel(xy_cv)
+    d = camera_directions(intr, uv[:, 0], uv[:, 1]) @ c2w[:3, :3].T
     return c2w[:3, 3], d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
@@ -249,13 +247,8 @@ def _project(c2w: np.ndarray, intr: np.ndarray, pts: np.ndarray) -> tuple[np.nda
 def _project_cams(cams: torch.Tensor, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-point cameras [N, 16] (c2w rows 0-2 + fx fy cx cy), points [N, 3] -> (OpenCV uv [N, 2],
     z-depth [N]). In torch so that the reprojection refinement can differentiate it."""
-    c2w = cams[:, :12].reshape(-1, 3, 4)
-    cam = torch.einsum("nij,ni->nj", c2w[:, :, :3], pts - c2w[:, :, 3])  # R^T (x - c)
-    z = -cam[:, 2]
-    zs = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
-    u = cams[:, 12] * cam[:, 0] / zs + cams[:, 14] - 0.5
-    v = -cams[:, 13] * cam[:, 1] / zs + cams[:, 15] - 0.5
-    return torch.stack([u, v], 1), z
+    uv, z = project_points(cams[:, :12].reshape(-1, 3, 4), cams[:, 12:16], pts)
+    return pixel_to_opencv(uv), z
 
 
 def triangulate_rays(point_index: np.ndarray, origins: np.ndarray, dirs: np.ndarray, num_points: int
@@ -285,7 +278,7 @@ def _farthest_views(c2w: np.ndarray, k: int) -> list[int]:
     """K views spread over positions and viewing directions (farthest-point sampling, deterministic)."""
     centres = c2w[:, :3, 3]
     spread = float(np.linalg.norm(centres - centres.mean(0), axis=1).mean()) or 1.0
-    feats = np.concatenate([centres / spread, -c2w[:, :3, 2]], 1)  # scale-free: [M, 6]
+    feats = np.concatenate([centres / spread, optical_axis(c2w)], 1)  # scale-free: [M, 6]
     first = int(np.argmin(np.linalg.norm(feats - feats.mean(0), axis=1)))
     chosen = [first]
     dist = np.linalg.norm(feats - feats[first], axis=1)
@@ -298,7 +291,7 @@ def _farthest_views(c2w: np.ndarray, k: int) -> list[int]:
 
 def _neighbours(c2w: np.ndarray, key: int, cfg: AlignConfig) -> list[int]:
     """Own views to triangulate a keyframe with: similar direction, some parallax, a real baseline."""
-    fwd = -c2w[:, :3, 2]
+    fwd = optical_axis(c2w)
     cos = np.clip(fwd @ fwd[key], -1.0, 1.0)
     angle = np.degrees(np.arccos(cos))
     base = np.linalg.norm(c2w[:, :3, 3] - c2w[key, :3, 3], axis=1)
@@ -319,8 +312,9 @@ def _rootsift(desc: np.ndarray) -> np.ndarray:
 def _depth_lookup(depth: np.ndarray, xy_cv: np.ndarray, radius: int) -> np.ndarray:
     """z-depth at keypoints [N, 2] -> [N] (0 = none): the valid pixel nearest to the keypoint."""
     h, w = depth.shape
-    ui = np.floor(xy_cv[:, 0] + 0.5).astype(int)  # pixel containing the continuous position
-    vi = np.floor(xy_cv[:, 1] + 0.5).astype(int)
+    uv = opencv_to_pixel(xy_cv)
+    ui = np.floor(uv[:, 0]).astype(int)  # pixel containing the continuous position
+    vi = np.floor(uv[:, 1]).astype(int)
     best = np.zeros(len(xy_cv), dtype=np.float64)
     best_d = np.full(len(xy_cv), np.inf)
     for dv in range(-radius, radius + 1):

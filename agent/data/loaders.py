@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 import torch
 
+from agent.camera import focal_from_fov, w2c_opencv_to_c2w_opengl
 from agent.data.views import DataError, Views
 
 __all__ = [
@@ -52,8 +53,6 @@ EXPECTED_LAYOUTS = (
     ".bin|.txt), a folder of images, or 'procedural[:views=100,width=64,seed=0]'"
 )
 
-# OpenCV camera (x right, y down, z forward) <-> OpenGL camera (x right, y up, z backward).
-_FLIP_YZ = np.diag([1.0, -1.0, -1.0, 1.0])
 # Camera models whose distortion we may ignore (after saying so in meta); others need undistortion.
 _COLMAP_MODELS = {"SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"}
 _UNSUPPORTED_NS_MODELS = {"OPENCV_FISHEYE", "FISHEYE", "EQUIRECTANGULAR", "FOV", "THIN_PRISM_FISHEYE"}
@@ -345,9 +344,9 @@ def _frame_intrinsics(top: dict, frame: dict, img_w: int, img_h: int, where: str
     fx, fy = get("fl_x"), get("fl_y")
     ang_x, ang_y = get("camera_angle_x"), get("camera_angle_y")
     if fx is None and ang_x is not None:
-        fx = 0.5 * w / math.tan(0.5 * ang_x)
+        fx = focal_from_fov(w, ang_x)
     if fy is None and ang_y is not None:
-        fy = 0.5 * h / math.tan(0.5 * ang_y)
+        fy = focal_from_fov(h, ang_y)
     if fx is None and fy is None:
         raise DataError(f"{where}: no focal length; expected 'fl_x' (and 'fl_y') or 'camera_angle_x'")
     fx = fx if fx is not None else fy
@@ -605,7 +604,7 @@ def load_colmap(
         w2c[:3, :] = np.asarray(im.cam_from_world().matrix(), dtype=np.float64)
         if not np.isfinite(w2c).all():
             raise DataError(f"{where}: pose contains NaN or infinity")
-        poses.append(np.linalg.inv(w2c) @ _FLIP_YZ)
+        poses.append(w2c_opencv_to_c2w_opengl(w2c))
         images.append(img)
         if load_depth:
             depth = np.full((new_h, new_w), np.inf)

@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 import torch
 
+from agent.camera import w2c_opencv_to_c2w_opengl
 from agent.data.views import DataError, Views
 
 __all__ = ["SfmConfig", "run_sfm", "list_images", "read_image", "read_camera_file", "write_camera_file",
@@ -41,8 +42,6 @@ log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 _CACHE_FORMAT = 1  # bump when the layout of result.npz changes
-# OpenCV camera (x right, y down, z forward) <-> OpenGL camera (x right, y up, z backward).
-_CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 @dataclass(frozen=True)
@@ -317,7 +316,7 @@ def _reconstruct(files: list[Path], work: Path, config: SfmConfig) -> dict:
         cam = image.camera
         w2c = np.eye(4)
         w2c[:3, :] = image.cam_from_world().matrix()
-        c2w[k] = np.linalg.inv(w2c) @ _CV_TO_GL
+        c2w[k] = w2c_opencv_to_c2w_opengl(w2c)
         intr[k] = [cam.focal_length_x, cam.focal_length_y, cam.principal_point_x, cam.principal_point_y]
         for p2d in image.points2D:
             if not p2d.has_point3D():

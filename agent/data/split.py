@@ -49,6 +49,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from agent.camera import fov_from_focal, optical_axis, unproject_depth
 from agent.data.folder import matrix_to_list, write_json, write_views_folder
 from agent.data.views import DataError, Views
 from agent.geometry import (
@@ -58,7 +59,6 @@ from agent.geometry import (
     sim3_inverse,
     so3_exp,
     transform_c2w,
-    unproject_depth,
 )
 
 __all__ = [
@@ -195,7 +195,7 @@ def scene_center(c2w: Tensor) -> Tensor:
     """
     c2w = c2w.to(torch.float64)
     o = c2w[:, :3, 3]
-    d = -c2w[:, :3, 2]
+    d = optical_axis(c2w)
     d = d / d.norm(dim=-1, keepdim=True)
     proj = torch.eye(3, dtype=torch.float64) - d[:, :, None] * d[:, None, :]  # [M, 3, 3]
     a = proj.sum(0)
@@ -319,9 +319,8 @@ def estimate_scene_box(views: Views) -> tuple[Tensor, float, str]:
         return 0.5 * (lo + hi), float(0.5 * (1 + DEPTH_BOX_PADDING) * (hi - lo).max()), "depth"
     center = scene_center(views.c2w)
     dist = (views.c2w[:, :3, 3].to(torch.float64) - center).norm(dim=-1)
-    half_fov = torch.minimum(
-        torch.atan(0.5 * views.width / views.intrinsics[:, 0]), torch.atan(0.5 * views.height / views.intrinsics[:, 1])
-    ).to(torch.float64)
+    fov = torch.minimum(fov_from_focal(views.width, views.intrinsics[:, 0]), fov_from_focal(views.height, views.intrinsics[:, 1]))
+    half_fov = (0.5 * fov).to(torch.float64)
     return center, float((dist * torch.tan(half_fov)).median()), "cameras"
 
 

@@ -1,6 +1,6 @@
 """The in-memory form of a set of posed images, shared by every loader and consumer.
 
-Conventions (the same everywhere in the project, see ``agent.geometry``):
+Conventions (the same everywhere in the project, see ``agent.camera``):
 - ``c2w`` are camera-to-world matrices in the OpenGL/Blender convention (camera looks down -Z,
   +Y up in the image, +X right).
 - ``intrinsics`` are per view ``(fx, fy, cx, cy)`` in pixels of *this* resolution, with the
