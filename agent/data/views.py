@@ -23,6 +23,13 @@ class DataError(ValueError):
     """A data folder or file is missing or malformed. The message says what was expected."""
 
 
+# What agent.data.loaders.load_views accepts, for the messages of the errors a user can fix.
+EXPECTED_LAYOUTS = (
+    "expected transforms.json, transforms_train.json, a COLMAP model (sparse/0/ or cameras/images/points3D "
+    ".bin|.txt), a folder of images, or 'procedural[:views=100,width=64,seed=0]'"
+)
+
+
 @dataclass
 class Views:
     images: Tensor  # [M, H, W, C] float32 in [0, 1], C = 3 (RGB) or 4 (RGBA)
