@@ -24,7 +24,7 @@ _EXPORTS = {
     "RobotSplit": "agent.data.split",
     "split_views": "agent.data.split",
     "write_split": "agent.data.split",
-    "estimate_scene_box": "agent.data.split",
+    "estimate_scene_box": "agent.data.capture",
     "write_views_folder": "agent.data.folder",
     "read_scene": "agent.data.folder",
     "read_truth": "agent.data.folder",
