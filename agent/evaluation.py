@@ -282,6 +282,7 @@ def fit_view_pose(trainer, c2w: Tensor, intrinsics: Tensor, image: Tensor, steps
     c2w: [4, 4] in the shared frame; intrinsics: [4]; image: [H, W, 3] -> corrected c2w [4, 4].
     """
     from agent.geometry import sim3_from_params
+    from agent.camera import pixel_centre
     from agent.nerf.rays import pixel_rays, transform_rays
     from agent.nerf.renderer import render_rays
 
@@ -300,7 +301,7 @@ def fit_view_pose(trainer, c2w: Tensor, intrinsics: Tensor, image: Tensor, steps
     for _ in range(steps):
         u = torch.randint(0, width, (rays_per_step,), generator=gen, device=dev)
         v = torch.randint(0, height, (rays_per_step,), generator=gen, device=dev)
-        rays = pixel_rays(c2w.expand(rays_per_step, 4, 4), k.expand(rays_per_step, 4), u + 0.5, v + 0.5)
+        rays = pixel_rays(c2w.expand(rays_per_step, 4, 4), k.expand(rays_per_step, 4), pixel_centre(u), pixel_centre(v))
         moved = c2w @ sim3_from_params(zero, phi, trans) @ c2w_inv  # the correction, in camera coordinates
         out = render_rays(trainer.field, trainer.grid, transform_rays(rays, moved), background, trainer.cfg.march,
                           trainer.box_from_shared)

@@ -4,7 +4,8 @@ One module owns this so that the data split, the trainer, the coarse alignment a
 evaluation agree on every convention:
 
 - Cameras are camera-to-world (c2w) 4x4 matrices in the OpenGL/Blender convention
-  (the camera looks down -Z, +Y is up in the image).
+  (the camera looks down -Z, +Y is up in the image); pixels, projection and depth are
+  :mod:`agent.camera`'s.
 - A similarity ``T = (s, R, t)`` is stored as ``[[s R, t], [0, 1]]`` and maps a point
   ``x -> s R x + t``. SE(3) is the special case ``s = 1``.
 - A robot's relative pose ``T_i`` maps its local frame into the shared frame ``g``. A camera
@@ -34,7 +35,6 @@ __all__ = [
     "sim3_inverse",
     "transform_points",
     "transform_c2w",
-    "unproject_depth",
     "rotation_angle_deg",
     "pose_error",
     "umeyama",
@@ -161,19 +161,6 @@ def transform_points(transform: Tensor, points: Tensor) -> Tensor:
     return points @ transform[:3, :3].transpose(0, 1) + transform[:3, 3]
 
 
-def unproject_depth(depth: Tensor, intrinsics: Tensor, c2w: Tensor) -> Tensor:
-    """The pixels with a known z-depth as 3-D points in the frame ``c2w`` maps into (OpenGL camera, pixel centres).
-
-    depth: [H, W] (0 = unknown), intrinsics: [4] fx, fy, cx, cy, c2w: [4, 4] -> [N, 3] float64.
-    """
-    d = depth.to(torch.float64)
-    rows, cols = torch.nonzero(d > 0, as_tuple=True)
-    fx, fy, cx, cy = intrinsics.to(torch.float64)
-    z = d[rows, cols]
-    cam = torch.stack([(cols + 0.5 - cx) / fx * z, -(rows + 0.5 - cy) / fy * z, -z], -1)  # [N, 3]
-    return transform_points(c2w.to(torch.float64), cam)
-
-
 def transform_c2w(transform: Tensor, c2w: Tensor) -> Tensor:
     """Move cameras by a similarity: ``[R R_c | s R t_c + t]``.
 
@@ -296,3 +283,13 @@ def box_from_center(center: Tensor, half_size: float) -> Tensor:
     out[3, 3] = 1.0
     out[:3, 3] = -torch.as_tensor(center, dtype=torch.float64) / half_size
     return out
+
+
+def __getattr__(name: str):
+    """``unproject_depth`` lives in :mod:`agent.camera`; it is still reachable here, imported lazily
+    because agent.camera builds on this module."""
+    if name == "unproject_depth":
+        from agent.camera import unproject_depth
+
+        return unproject_depth
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -25,6 +25,7 @@ from agent.geometry import sim3_decompose, sim3_from_params, sim3_inverse, so3_e
 from agent.metrics import psnr, ssim
 from agent.nerf.field import FieldConfig, NGPField
 from agent.nerf.occupancy import OccupancyConfig, OccupancyGrid
+from agent.camera import pixel_centre
 from agent.nerf.rays import image_rays, pixel_rays
 from agent.nerf.renderer import render_image, render_rays
 from agent.nerf.sampler import MarchConfig
@@ -426,7 +427,7 @@ class RobotTrainer:
         px = torch.randint(0, h * w, (n,), generator=gen, device=self.device)
         row, col = px // w, px % w
         c2w = self.cameras_shared()[img]  # [n, 4, 4]
-        rays = pixel_rays(c2w, self.camera_intrinsics()[img], col.float() + 0.5, row.float() + 0.5)
+        rays = pixel_rays(c2w, self.camera_intrinsics()[img], pixel_centre(col.float()), pixel_centre(row.float()))
         pixels = self.images[img, row, col]  # [n, C]
         bg = self._background(n)
         if pixels.shape[-1] == 4:

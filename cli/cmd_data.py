@@ -98,6 +98,7 @@ def inspect(
     width: int = typer.Option(None, help="Load at this width (as training would)."),
 ) -> None:
     """Show what a dataset holds: views, size, intrinsics, depth, camera layout, scene bounds."""
+    from agent.camera import fov_from_focal
     from agent.data.loaders import load_views
     from agent.data.split import estimate_scene_box, mean_up, scene_center
 
@@ -112,7 +113,7 @@ def inspect(
     if v.has_alpha:
         table.add_row("alpha", f"mean {float(v.images[..., 3].mean()):.3f} (objects cover this fraction of pixels)")
     k = v.intrinsics
-    fov = 2 * torch.rad2deg(torch.atan(0.5 * v.width / k[:, 0]))
+    fov = torch.rad2deg(fov_from_focal(v.width, k[:, 0]))
     uniq = "shared by all views" if bool((k == k[0]).all()) else "per view"
     table.add_row(
         "intrinsics",

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from agent.camera import PIXEL_CENTRE, camera_directions, focal_from_fov
 from agent.data.views import DataError, Views
 from agent.geometry import look_at
 
@@ -326,9 +327,7 @@ def _trace(c2w: np.ndarray, k: np.ndarray, width: int, height: int, offset: tupl
     u = np.arange(width) + offset[0]
     v = np.arange(height) + offset[1]
     # camera-frame directions with z = -1, so the hit parameter t *is* the z-depth
-    x = (u[None, None, :] - k[:, 2, None, None]) / k[:, 0, None, None]  # [M, 1, W]
-    y = -(v[None, :, None] - k[:, 3, None, None]) / k[:, 1, None, None]  # [M, H, 1]
-    dirs_cam = np.stack(np.broadcast_arrays(x, y, -np.ones((m, height, width))), -1)  # [M, H, W, 3]
+    dirs_cam = camera_directions(k[:, None, None, :], u[None, None, :], v[None, :, None])  # [M, H, W, 3]
     dirs = np.matmul(dirs_cam.reshape(m, -1, 3), c2w[:, :3, :3].transpose(0, 2, 1)).reshape(-1, 3)
     origins = np.repeat(c2w[:, :3, 3], height * width, axis=0)  # [M*H*W, 3]
 
@@ -367,7 +366,8 @@ def render_procedural(c2w: Tensor, intrinsics: Tensor, width: int, height: int,
     m = c2w_np.shape[0]
     if k.shape[0] != m:
         raise DataError(f"render_procedural: {m} poses but {k.shape[0]} intrinsics")
-    rgb_c, hit_c, t_c = _trace(c2w_np, k, width, height, (0.5, 0.5))
+    centre = (PIXEL_CENTRE, PIXEL_CENTRE)
+    rgb_c, hit_c, t_c = _trace(c2w_np, k, width, height, centre)
     depth = np.where(hit_c, t_c, 0.0)
     if supersample == 1:
         rgb, alpha = rgb_c, hit_c.astype(np.float64)
@@ -376,7 +376,7 @@ def render_procedural(c2w: Tensor, intrinsics: Tensor, width: int, height: int,
         for a in range(supersample):
             for b in range(supersample):
                 offset = ((a + 0.5) / supersample, (b + 0.5) / supersample)
-                rgb_s, hit_s, _ = (rgb_c, hit_c, t_c) if offset == (0.5, 0.5) else _trace(c2w_np, k, width, height, offset)
+                rgb_s, hit_s, _ = (rgb_c, hit_c, t_c) if offset == centre else _trace(c2w_np, k, width, height, offset)
                 premultiplied += rgb_s * hit_s[:, None]
                 alpha += hit_s
         alpha /= supersample * supersample
@@ -398,7 +398,7 @@ def procedural_cameras(cfg: ProceduralConfig) -> tuple[Tensor, Tensor]:
     target = torch.zeros(3, dtype=torch.float64)
     up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     c2w = torch.stack([look_at(torch.from_numpy(e), target, up) for e in eyes]).float()
-    f = 0.5 * cfg.width / math.tan(0.5 * math.radians(cfg.fov_deg))
+    f = focal_from_fov(cfg.width, math.radians(cfg.fov_deg))
     intr = torch.tensor([[f, f, 0.5 * cfg.width, 0.5 * cfg.height]], dtype=torch.float32).repeat(cfg.num_views, 1)
     return c2w, intr
 

@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 import torch
 
+from agent.camera import w2c_opencv_to_c2w_opengl
 from agent.data.views import DataError, Views
 
 __all__ = ["SfmConfig", "run_sfm", "list_images", "read_image", "read_camera_file", "write_camera_file",
@@ -41,8 +42,6 @@ log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 _CACHE_FORMAT = 1  # bump when the layout of result.npz changes
-# OpenCV camera (x right, y down, z forward) <-> OpenGL camera (x right, y up, z backward).
-_CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 @dataclass(frozen=True)
@@ -224,6 +223,38 @@ def _reconstruct(files: list[Path], work: Path, config: SfmConfig) -> dict:
     pycolmap.logging.minloglevel = 0 if config.verbose else 2  # 2 = errors only
 
     img_dir = work / "images"
+    names, size = _write_sfm_images(files, img_dir, config)
+    sfm_w, sfm_h = _fit_size(size[0], size[1], config.max_image_size)
+    db = work / "database.db"
+    if db.exists():
+        db.unlink()
+    _extract_features(db, img_dir, names, size, (sfm_w, sfm_h), config)
+    matcher = _match_features(db, len(names), config)
+    sparse = work / "sparse"
+    if sparse.exists():
+        shutil.rmtree(sparse)
+    sparse.mkdir()
+    models = pycolmap.incremental_mapping(db, img_dir, sparse, options=_mapping_options(config))
+    if not models:
+        return {"names": names, "registered": [], "size": (sfm_w, sfm_h), "matcher": matcher}
+    best = max(models, key=lambda k: (models[k].num_reg_images(), -k))
+    rec = models[best]
+    (sparse / "largest").mkdir()
+    rec.write(sparse / "largest")  # kept next to the cache for inspection with the COLMAP GUI
+    reg_ids = sorted(rec.reg_image_ids(), key=lambda i: names.index(rec.image(i).name))
+    return {
+        "names": names,
+        "registered": [rec.image(i).name for i in reg_ids],
+        "size": (sfm_w, sfm_h),
+        "matcher": matcher,
+        **_model_arrays(rec, reg_ids, config),
+        "num_models": len(models),
+        "mean_reproj_error": float(rec.compute_mean_reprojection_error()),
+    }
+
+
+def _write_sfm_images(files: list[Path], img_dir: Path, config: SfmConfig) -> tuple[list[str], tuple[int, int]]:
+    """The images as SfM sees them (composited, downscaled 8-bit PNG) in ``img_dir`` -> (names, original size)."""
     if img_dir.exists():
         shutil.rmtree(img_dir)
     img_dir.mkdir(parents=True)
@@ -245,11 +276,14 @@ def _reconstruct(files: list[Path], work: Path, config: SfmConfig) -> dict:
         out = np.clip(np.rint(rgb[:, :, ::-1] * 255.0), 0, 255).astype(np.uint8)
         cv2.imwrite(str(img_dir / name), out)
     assert size is not None
-    sfm_w, sfm_h = _fit_size(size[0], size[1], config.max_image_size)
+    return names, size
 
-    db = work / "database.db"
-    if db.exists():
-        db.unlink()
+
+def _extract_features(db: Path, img_dir: Path, names: list[str], size: tuple[int, int], sfm_size: tuple[int, int],
+                      config: SfmConfig) -> None:
+    import pycolmap
+
+    sfm_w, sfm_h = sfm_size
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = config.camera_model
     if config.focal_px is not None:  # prior at the SfM resolution; principal point at the centre
@@ -264,22 +298,30 @@ def _reconstruct(files: list[Path], work: Path, config: SfmConfig) -> dict:
     pycolmap.extract_features(db, img_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                               reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
 
+
+def _match_features(db: Path, num_images: int, config: SfmConfig) -> str:
+    """Exhaustive matching for few images, sequential (capture order) for many. -> which one ran."""
+    import pycolmap
+
     matching = pycolmap.FeatureMatchingOptions()
     matching.use_gpu = False
     matching.num_threads = config.num_threads
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = config.seed
-    if len(names) <= config.exhaustive_max_images:
+    if num_images <= config.exhaustive_max_images:
         pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
                                   device=pycolmap.Device.cpu)
-        matcher = "exhaustive"
-    else:
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = config.sequential_overlap
-        pairing.num_threads = config.num_threads
-        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
-                                  verification_options=verification, device=pycolmap.Device.cpu)
-        matcher = "sequential"
+        return "exhaustive"
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = config.sequential_overlap
+    pairing.num_threads = config.num_threads
+    pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
+                              verification_options=verification, device=pycolmap.Device.cpu)
+    return "sequential"
+
+
+def _mapping_options(config: SfmConfig):
+    import pycolmap
 
     mapping = pycolmap.IncrementalPipelineOptions()
     mapping.num_threads = config.num_threads
@@ -296,19 +338,11 @@ def _reconstruct(files: list[Path], work: Path, config: SfmConfig) -> dict:
     mapping.ba_refine_focal_length = config.refine_focal
     mapping.mapper.abs_pose_refine_focal_length = config.refine_focal
     mapping.max_runtime_seconds = int(config.max_runtime_seconds)
-    sparse = work / "sparse"
-    if sparse.exists():
-        shutil.rmtree(sparse)
-    sparse.mkdir()
-    models = pycolmap.incremental_mapping(db, img_dir, sparse, options=mapping)
-    if not models:
-        return {"names": names, "registered": [], "size": (sfm_w, sfm_h), "matcher": matcher}
-    best = max(models, key=lambda k: (models[k].num_reg_images(), -k))
-    rec = models[best]
-    (sparse / "largest").mkdir()
-    rec.write(sparse / "largest")  # kept next to the cache for inspection with the COLMAP GUI
+    return mapping
 
-    reg_ids = sorted(rec.reg_image_ids(), key=lambda i: names.index(rec.image(i).name))
+
+def _model_arrays(rec, reg_ids: list[int], config: SfmConfig) -> dict:
+    """OpenGL c2w, intrinsics, the depth prior's observations (image, keypoint, z) and the points of a model."""
     c2w = np.zeros((len(reg_ids), 4, 4))
     intr = np.zeros((len(reg_ids), 4))
     obs_img, obs_xy, obs_z = [], [], []
@@ -317,7 +351,7 @@ def _reconstruct(files: list[Path], work: Path, config: SfmConfig) -> dict:
         cam = image.camera
         w2c = np.eye(4)
         w2c[:3, :] = image.cam_from_world().matrix()
-        c2w[k] = np.linalg.inv(w2c) @ _CV_TO_GL
+        c2w[k] = w2c_opencv_to_c2w_opengl(w2c)
         intr[k] = [cam.focal_length_x, cam.focal_length_y, cam.principal_point_x, cam.principal_point_y]
         for p2d in image.points2D:
             if not p2d.has_point3D():
@@ -331,20 +365,13 @@ def _reconstruct(files: list[Path], work: Path, config: SfmConfig) -> dict:
             obs_img.append(k)
             obs_xy.append(p2d.xy)
             obs_z.append(z)
-    points = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float32).reshape(-1, 3)
     return {
-        "names": names,
-        "registered": [rec.image(i).name for i in reg_ids],
-        "size": (sfm_w, sfm_h),
-        "matcher": matcher,
         "c2w": c2w,
         "intrinsics": intr,
         "obs_image": np.asarray(obs_img, dtype=np.int32),
         "obs_xy": np.asarray(obs_xy, dtype=np.float32).reshape(-1, 2),
         "obs_z": np.asarray(obs_z, dtype=np.float32),
-        "points": points,
-        "num_models": len(models),
-        "mean_reproj_error": float(rec.compute_mean_reprojection_error()),
+        "points": np.array([p.xyz for p in rec.points3D.values()], dtype=np.float32).reshape(-1, 3),
     }
 
 
@@ -406,17 +433,51 @@ def run_sfm(image_dir: str | Path, cache_dir: str | Path | None = None, *, width
     only valid in the frame it trained in, and a second SfM run is not that frame, even with the
     same settings (COLMAP on 2 threads is not bit-reproducible).
     """
-    image_dir = robot_dir = Path(image_dir)
+    robot_dir = Path(image_dir)
+    image_dir, files = _robot_images(robot_dir)
+    config = _with_camera_file(config, robot_dir, files)
+    res, cache_hit, settings_changed = _cached_reconstruction(files, cache_dir, config, keep_frame, image_dir)
+    n_reg = len(res["registered"])
+    need = max(config.min_registered, int(np.ceil(config.min_registered_fraction * len(files))))
+    if n_reg < need:
+        raise DataError(f"SfM registered {n_reg} of {len(files)} images in {image_dir} (need at least {need}): "
+                        "the images overlap too little or have too little texture")
+
+    by_name = {f.stem + ".png": f for f in files}
+    images, (out_w, out_h) = _output_images([by_name[n] for n in res["registered"]], width)
+    sfm_w, sfm_h = res["size"]
+    sx, sy = out_w / sfm_w, out_h / sfm_h
+    intr = np.asarray(res["intrinsics"], dtype=np.float64) * np.array([sx, sy, sx, sy])
+    return Views(
+        images=torch.from_numpy(images.astype(np.float32)),
+        c2w=torch.from_numpy(np.asarray(res["c2w"], dtype=np.float64)).float(),
+        intrinsics=torch.from_numpy(intr).float(),
+        names=[Path(n).stem for n in res["registered"]],
+        depth=torch.from_numpy(_sparse_depth(res, n_reg, out_w, out_h, sx, sy)),
+        meta=_meta(res, files, image_dir, config, cache_hit, settings_changed),
+    )
+
+
+def _robot_images(robot_dir: Path) -> tuple[Path, list[Path]]:
+    """(the folder holding the images, the image files): the robot's folder or its images/ subfolder."""
+    image_dir = robot_dir
     files = list_images(image_dir)
     if not files and (image_dir / "images").is_dir():  # the usual layout <robot>/images/*.png
         image_dir = image_dir / "images"
         files = list_images(image_dir)
     if not files:
         raise DataError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {image_dir}")
-    config = _with_camera_file(config, robot_dir, files)
+    return image_dir, files
+
+
+def _cached_reconstruction(files: list[Path], cache_dir: str | Path | None, config: SfmConfig, keep_frame: bool,
+                           image_dir: Path) -> tuple[dict, bool, bool]:
+    """The SfM of ``files``, from ``cache_dir`` when it holds it, else computed and cached there.
+
+    -> (result, cache hit, the cached result was made with other settings: ``keep_frame``).
+    """
     digests = _file_digests(files)
     images_key, key = _images_key(digests), _cache_key(digests, config)
-
     tmp_ctx = tempfile.TemporaryDirectory(prefix="dinerf-sfm-") if cache_dir is None else None
     work = Path(tmp_ctx.name) if tmp_ctx is not None else Path(cache_dir)
     try:
@@ -424,7 +485,6 @@ def run_sfm(image_dir: str | Path, cache_dir: str | Path | None = None, *, width
         result_path = work / "sfm_result.npz"
         t0 = time.perf_counter()
         cached = _load(result_path, key, images_key if keep_frame else None)
-        cache_hit = cached is not None
         if cached is None:
             res, settings_changed = _reconstruct(files, work, config), False
             res["seconds"] = time.perf_counter() - t0
@@ -439,26 +499,21 @@ def run_sfm(image_dir: str | Path, cache_dir: str | Path | None = None, *, width
     finally:
         if tmp_ctx is not None:
             tmp_ctx.cleanup()
+    return res, cached is not None, settings_changed
 
-    n_reg = len(res["registered"])
-    need = max(config.min_registered, int(np.ceil(config.min_registered_fraction * len(files))))
-    if n_reg < need:
-        raise DataError(f"SfM registered {n_reg} of {len(files)} images in {image_dir} (need at least {need}): "
-                        "the images overlap too little or have too little texture")
 
-    by_name = {f.stem + ".png": f for f in files}
-    reg_files = [by_name[n] for n in res["registered"]]
+def _output_images(reg_files: list[Path], width: int | None) -> tuple[np.ndarray, tuple[int, int]]:
+    """The registered images at their original size or ``width`` wide -> ([M, H, W, C], (W, H))."""
     first = read_image(reg_files[0])
     h0, w0 = first.shape[:2]
     out_w = w0 if width is None else int(width)
     out_h = h0 if width is None else max(1, round(h0 * out_w / w0))
     images = np.stack([_resize(first if i == 0 else read_image(f), out_w, out_h) for i, f in enumerate(reg_files)])
+    return images, (out_w, out_h)
 
-    sfm_w, sfm_h = res["size"]
-    sx, sy = out_w / sfm_w, out_h / sfm_h
-    intr = np.asarray(res["intrinsics"], dtype=np.float64) * np.array([sx, sy, sx, sy])
 
-    # Sparse z-depth: one pixel per observation; where two land on one pixel keep the nearer.
+def _sparse_depth(res: dict, n_reg: int, out_w: int, out_h: int, sx: float, sy: float) -> np.ndarray:
+    """Sparse z-depth [M, H, W]: one pixel per observation; where two land on one pixel keep the nearer."""
     depth = np.zeros((n_reg, out_h, out_w), dtype=np.float32)
     if len(res["obs_z"]):
         u = np.clip(np.floor(res["obs_xy"][:, 0] * sx).astype(np.int64), 0, out_w - 1)
@@ -467,12 +522,16 @@ def run_sfm(image_dir: str | Path, cache_dir: str | Path | None = None, *, width
         np.minimum.at(flat, (res["obs_image"].astype(np.int64) * out_h + v) * out_w + u, res["obs_z"])
         flat[np.isinf(flat)] = 0.0
         depth = flat.reshape(n_reg, out_h, out_w)
+    return depth
 
-    meta = {
+
+def _meta(res: dict, files: list[Path], image_dir: Path, config: SfmConfig, cache_hit: bool, settings_changed: bool) -> dict:
+    sfm_w, sfm_h = res["size"]
+    return {
         "source": "sfm",
         "image_dir": str(image_dir),
         "num_images": len(files),
-        "num_registered": n_reg,
+        "num_registered": len(res["registered"]),
         "unregistered": [f.name for f in files if f.stem + ".png" not in set(res["registered"])],
         "sfm_size": (int(sfm_w), int(sfm_h)),
         "sfm_seconds": float(res.get("seconds", 0.0)),
@@ -486,11 +545,3 @@ def run_sfm(image_dir: str | Path, cache_dir: str | Path | None = None, *, width
         "scale_known": False,  # SfM scale is arbitrary: relative poses must be Sim(3)
         "focal_calibrated": config.focal_px is not None and not config.refine_focal,  # a known camera: keep it
     }
-    return Views(
-        images=torch.from_numpy(images.astype(np.float32)),
-        c2w=torch.from_numpy(np.asarray(res["c2w"], dtype=np.float64)).float(),
-        intrinsics=torch.from_numpy(intr).float(),
-        names=[Path(n).stem for n in res["registered"]],
-        depth=torch.from_numpy(depth),
-        meta=meta,
-    )

@@ -49,6 +49,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from agent.data.capture import azimuths_deg, estimate_scene_box, mean_up, scene_center
 from agent.data.folder import matrix_to_list, write_json, write_views_folder
 from agent.data.views import DataError, Views
 from agent.geometry import (
@@ -58,7 +59,6 @@ from agent.geometry import (
     sim3_inverse,
     so3_exp,
     transform_c2w,
-    unproject_depth,
 )
 
 __all__ = [
@@ -183,66 +183,8 @@ class SplitResult:
 
 
 # --------------------------------------------------------------------------------------------
-# Geometry of the capture
+# Sectors
 # --------------------------------------------------------------------------------------------
-
-
-def scene_center(c2w: Tensor) -> Tensor:
-    """Least-squares point closest to all optical axes.  c2w: [M, 4, 4] -> [3] float64.
-
-    Minimises ``sum_i |(I - d_i d_i^T)(p - o_i)|^2`` (distance of p to each axis). When the axes
-    are (nearly) parallel, e.g. a forward-facing capture, the mean camera centre is used instead.
-    """
-    c2w = c2w.to(torch.float64)
-    o = c2w[:, :3, 3]
-    d = -c2w[:, :3, 2]
-    d = d / d.norm(dim=-1, keepdim=True)
-    proj = torch.eye(3, dtype=torch.float64) - d[:, :, None] * d[:, None, :]  # [M, 3, 3]
-    a = proj.sum(0)
-    b = (proj @ o[:, :, None]).sum(0)[:, 0]
-    if torch.linalg.eigvalsh(a).min() < 1e-3 * len(c2w):
-        return o.mean(0)
-    return torch.linalg.solve(a, b)
-
-
-def mean_up(c2w: Tensor) -> Tensor:
-    """The up axis of a capture.  c2w: [M, 4, 4] -> [3] unit float64.
-
-    Starts from the mean of the cameras' up vectors (their +Y axes). That mean leans towards
-    wherever the cameras happen to be (cameras looking down at an object from random azimuths
-    tilt it by several degrees), so when the cameras have no roll, i.e. their x axes are all
-    horizontal as in the Blender scenes and most captures, the axis orthogonal to every x axis
-    is used instead (smallest eigenvector of sum x x^T, signed like the mean up), which is exact.
-    """
-    c2w = c2w.to(torch.float64)
-    up = c2w[:, :3, 1].mean(0)
-    if up.norm() < 1e-6:
-        raise DataError("the cameras' up vectors cancel out; give the up axis explicitly")
-    up = up / up.norm()
-    right = c2w[:, :3, 0]
-    evals, evecs = torch.linalg.eigh(right.T @ right)
-    # roll-free cameras: x axes orthogonal to one direction (< ~2 deg rms), and spread enough to define it
-    if len(c2w) >= 3 and evals[0] < 1e-3 * len(c2w) and evals[1] > 0.05 * len(c2w):
-        normal = evecs[:, 0]
-        return normal if normal @ up > 0 else -normal
-    return up
-
-
-def _plane_basis(up: Tensor) -> tuple[Tensor, Tensor]:
-    """Two unit vectors spanning the plane orthogonal to ``up``; e1 from the world axis least
-    aligned with up (so that for up = +z the azimuth is the usual atan2(y, x))."""
-    axis = torch.zeros(3, dtype=torch.float64)
-    axis[int(up.abs().argmin())] = 1.0
-    e1 = axis - (axis @ up) * up
-    e1 = e1 / e1.norm()
-    return e1, torch.linalg.cross(up, e1)
-
-
-def azimuths_deg(c2w: Tensor, center: Tensor, up: Tensor) -> Tensor:
-    """Azimuth in [0, 360) of each camera centre about ``up`` through ``center``.  -> [M] float64."""
-    e1, e2 = _plane_basis(up.to(torch.float64))
-    v = c2w[:, :3, 3].to(torch.float64) - center.to(torch.float64)
-    return torch.rad2deg(torch.atan2(v @ e2, v @ e1)) % 360.0
 
 
 def _membership(az: np.ndarray, starts: np.ndarray, width: float, delta: float) -> np.ndarray:
@@ -288,43 +230,6 @@ def offset_transform(rotation_deg: tuple[float, float, float], translation: tupl
     return out
 
 
-DEPTH_BOX_QUANTILE = 0.01  # per axis, each side: sparse SfM depth has outliers far from the scene
-DEPTH_BOX_PADDING = 0.2  # of the quantile bounds' largest extent
-
-
-def estimate_scene_box(views: Views) -> tuple[Tensor, float, str]:
-    """The world box of the scene: (centre [3], half-size, where it came from).
-
-    In order of trust: ``meta['scene_box_world']`` (the procedural scene knows it exactly; a json
-    may carry it); the bounds of the depth unprojected into the world (1st-99th percentile per
-    axis, padded by 20%); else the cameras: centre of the optical axes and the half-width of the
-    median frustum at that distance (for the Blender scenes this gives ~1.45, close to the
-    customary [-1.5, 1.5]^3).
-
-    The depth bounds must not clip the object: a box that cuts off its extremities leaves them
-    unrenderable. The 2nd-98th percentile padded by 10% cut 1.4% of lego's SfM points inside the
-    true box; an images-only swarm on it fitted its own training views at 29.93 / 32.16 dB, and at
-    32.67 / 33.44 in the true box (same true cameras, one in-process run each). With this rule the
-    box is as large as the true one (half-size 1.45) and cuts 0.04%, and the lego-2-images-only
-    scenario scores 30.19 / 30.06 dB held out instead of 29.02 / 28.90 (README).
-    """
-    box = views.meta.get("scene_box_world")
-    if isinstance(box, dict) and "center" in box and "half_size" in box:
-        return torch.tensor(box["center"], dtype=torch.float64), float(box["half_size"]), "dataset"
-    if views.depth is not None and bool((views.depth > 0).any()):
-        p = torch.cat([unproject_depth(views.depth[i], views.intrinsics[i], views.c2w[i]) for i in range(len(views))])
-        if len(p) > 200_000:
-            p = p[torch.randperm(len(p), generator=torch.Generator().manual_seed(0))[:200_000]]
-        lo, hi = torch.quantile(p, DEPTH_BOX_QUANTILE, dim=0), torch.quantile(p, 1 - DEPTH_BOX_QUANTILE, dim=0)
-        return 0.5 * (lo + hi), float(0.5 * (1 + DEPTH_BOX_PADDING) * (hi - lo).max()), "depth"
-    center = scene_center(views.c2w)
-    dist = (views.c2w[:, :3, 3].to(torch.float64) - center).norm(dim=-1)
-    half_fov = torch.minimum(
-        torch.atan(0.5 * views.width / views.intrinsics[:, 0]), torch.atan(0.5 * views.height / views.intrinsics[:, 1])
-    ).to(torch.float64)
-    return center, float((dist * torch.tan(half_fov)).median()), "cameras"
-
-
 # --------------------------------------------------------------------------------------------
 # The split
 # --------------------------------------------------------------------------------------------
@@ -334,87 +239,114 @@ def split_views(views: Views, cfg: SplitConfig | None = None) -> SplitResult:
     """Split ``views`` (world frame) into robots, held-out views and the truth; nothing is written."""
     cfg = cfg or SplitConfig()
     ids = cfg.robot_ids
-    n = len(ids)
-    m = len(views)
     if cfg.depth_prior != "none" and views.depth is None:
         raise DataError(
             f"depth prior {cfg.depth_prior!r} needs a source with depth (procedural, nerfstudio depth maps "
             f"or a COLMAP model); {views.meta.get('source', 'this source')} has none"
         )
-    eval_idx = list(range(0, m, cfg.holdout_every)) if cfg.holdout_every else []
-    held = set(eval_idx)
-    train_idx = [i for i in range(m) if i not in held]
-    if not train_idx:
-        raise DataError(f"no training views left: {m} views with holdout_every={cfg.holdout_every}")
-
-    up = torch.tensor(cfg.up, dtype=torch.float64) if cfg.up is not None else mean_up(views.c2w)
-    up = up / up.norm()
-    center = torch.tensor(cfg.center, dtype=torch.float64) if cfg.center is not None else scene_center(views.c2w)
-    az_all = azimuths_deg(views.c2w, center, up)
-    az = az_all.numpy()
-    width = 360.0 / n
-    starts = (cfg.sector_start_deg + width * np.arange(n)) % 360.0
-    delta = _choose_margin(az[train_idx], starts, width, cfg.overlap)
-    mem_train = _membership(az[train_idx], starts, width, delta)  # [M_train, N]
+    eval_idx, train_idx = _holdout(len(views), cfg)
+    sec = _sectors(views, cfg, train_idx, len(ids))
+    mem_train = _membership(sec.azimuth_deg.numpy()[train_idx], sec.starts, sec.width, sec.margin)  # [M_train, N]
     overlaps = _overlaps(mem_train)
     for k, rid in enumerate(ids):
         if not mem_train[:, k].any():
-            raise DataError(f"robot {rid} gets no views (sector {starts[k]:.0f}-{starts[k] + width:.0f} deg is empty); use fewer robots")
-    mean_overlap = float(np.mean(overlaps))
+            raise DataError(f"robot {rid} gets no views (sector {sec.starts[k]:.0f}-{sec.starts[k] + sec.width:.0f} deg "
+                            "is empty); use fewer robots")
 
     gen = torch.Generator().manual_seed(cfg.seed)
     reference = ids[0]
     robots: dict[int, RobotSplit] = {}
-    notes: list[str] = []
     for k, rid in enumerate(ids):
         idx = [train_idx[j] for j in np.nonzero(mem_train[:, k])[0]]
-        sub = views.subset(idx)
-        t_wl = _local_frame(cfg, rid == reference, sub, gen)
-        scale = float(sim3_decompose(t_wl)[0])
-        c2w_local = transform_c2w(sim3_inverse(t_wl), sub.c2w.to(torch.float64)).float()
-        depth, affine = None, None
-        if cfg.depth_prior != "none":
-            assert sub.depth is not None
-            depth = sub.depth.to(torch.float64) / scale
-            if cfg.depth_prior == "scaled":
-                a = torch.empty(len(idx), dtype=torch.float64).uniform_(*cfg.depth_scale_range, generator=gen)
-                b = torch.empty(len(idx), dtype=torch.float64).uniform_(*cfg.depth_shift_range, generator=gen)
-                affine = torch.stack([a, b], -1)
-                known = depth > 0
-                depth = torch.where(known, (a[:, None, None] * depth + b[:, None, None]).clamp_min(1e-6), 0.0)
-            depth = depth.float()
-        meta = {k2: v for k2, v in sub.meta.items() if k2 not in ("scene_box_world",)}
-        meta.update(robot_id=rid, frame=cfg.frame, depth_prior=cfg.depth_prior)
-        local = Views(sub.images, c2w_local, sub.intrinsics.clone(), list(sub.names), depth, meta)
-        sector = (float(starts[k] - delta), float(starts[k] + width + delta))
-        robots[rid] = RobotSplit(rid, local, idx, t_wl, sector, float(overlaps[k]), affine)
+        sector = (float(sec.starts[k] - sec.margin), float(sec.starts[k] + sec.width + sec.margin))
+        robots[rid] = _robot_split(views, cfg, rid, rid == reference, idx, gen, sector, float(overlaps[k]))
 
     seen_by = []
     if eval_idx:
-        mem_eval = _membership(az[eval_idx], starts, width, delta)
+        mem_eval = _membership(sec.azimuth_deg.numpy()[eval_idx], sec.starts, sec.width, sec.margin)
         seen_by = [[ids[k] for k in np.nonzero(row)[0]] for row in mem_eval]
-    eval_views = views.subset(eval_idx)
     box_c, box_h, box_src = estimate_scene_box(views)
+    notes: list[str] = []
     if box_src != "dataset":
         notes.append(f"scene box estimated from the {box_src}: centre {box_c.tolist()}, half-size {box_h:.3f}")
     return SplitResult(
         config=cfg,
         robots=robots,
-        eval_views=eval_views,
+        eval_views=views.subset(eval_idx),
         eval_indices=eval_idx,
         seen_by=seen_by,
         reference_id=reference,
-        center=center,
-        up=up,
-        azimuth_deg=az_all,
-        margin_deg=delta,
-        mean_overlap=mean_overlap,
+        center=sec.center,
+        up=sec.up,
+        azimuth_deg=sec.azimuth_deg,
+        margin_deg=sec.margin,
+        mean_overlap=float(np.mean(overlaps)),
         box_center_world=box_c,
         box_half_size=box_h,
         box_source=box_src,
         source=str(views.meta.get("source", "")),
         notes=notes,
     )
+
+
+def _holdout(m: int, cfg: SplitConfig) -> tuple[list[int], list[int]]:
+    """(held-out view indices: every k-th, training view indices) of ``m`` source views."""
+    eval_idx = list(range(0, m, cfg.holdout_every)) if cfg.holdout_every else []
+    held = set(eval_idx)
+    train_idx = [i for i in range(m) if i not in held]
+    if not train_idx:
+        raise DataError(f"no training views left: {m} views with holdout_every={cfg.holdout_every}")
+    return eval_idx, train_idx
+
+
+@dataclass
+class _Sectors:
+    center: Tensor  # [3]
+    up: Tensor  # [3] unit
+    azimuth_deg: Tensor  # [M] of every source view
+    starts: np.ndarray  # [N] core sector starts, degrees
+    width: float  # of a core sector, degrees
+    margin: float  # delta, degrees
+
+
+def _sectors(views: Views, cfg: SplitConfig, train_idx: list[int], n: int) -> _Sectors:
+    """The robots' sectors about the up axis, widened by the margin that gives the requested overlap."""
+    up = torch.tensor(cfg.up, dtype=torch.float64) if cfg.up is not None else mean_up(views.c2w)
+    up = up / up.norm()
+    center = torch.tensor(cfg.center, dtype=torch.float64) if cfg.center is not None else scene_center(views.c2w)
+    az_all = azimuths_deg(views.c2w, center, up)
+    width = 360.0 / n
+    starts = (cfg.sector_start_deg + width * np.arange(n)) % 360.0
+    delta = _choose_margin(az_all.numpy()[train_idx], starts, width, cfg.overlap)
+    return _Sectors(center, up, az_all, starts, width, delta)
+
+
+def _robot_split(views: Views, cfg: SplitConfig, rid: int, is_reference: bool, idx: list[int], gen: torch.Generator,
+                 sector: tuple[float, float], overlap: float) -> RobotSplit:
+    """Robot ``rid``'s views ``idx`` moved into its local frame, with its depth prior."""
+    sub = views.subset(idx)
+    t_wl = _local_frame(cfg, is_reference, sub, gen)
+    scale = float(sim3_decompose(t_wl)[0])
+    c2w_local = transform_c2w(sim3_inverse(t_wl), sub.c2w.to(torch.float64)).float()
+    depth, affine = _depth_prior(cfg, sub, scale, gen) if cfg.depth_prior != "none" else (None, None)
+    meta = {k2: v for k2, v in sub.meta.items() if k2 not in ("scene_box_world",)}
+    meta.update(robot_id=rid, frame=cfg.frame, depth_prior=cfg.depth_prior)
+    local = Views(sub.images, c2w_local, sub.intrinsics.clone(), list(sub.names), depth, meta)
+    return RobotSplit(rid, local, idx, t_wl, sector, overlap, affine)
+
+
+def _depth_prior(cfg: SplitConfig, sub: Views, scale: float, gen: torch.Generator) -> tuple[Tensor, Tensor | None]:
+    """The robot's depth prior [M_i, H, W] in its local units, and the affine [M_i, 2] of a "scaled" one."""
+    assert sub.depth is not None
+    depth = sub.depth.to(torch.float64) / scale
+    affine = None
+    if cfg.depth_prior == "scaled":
+        a = torch.empty(len(sub), dtype=torch.float64).uniform_(*cfg.depth_scale_range, generator=gen)
+        b = torch.empty(len(sub), dtype=torch.float64).uniform_(*cfg.depth_shift_range, generator=gen)
+        affine = torch.stack([a, b], -1)
+        known = depth > 0
+        depth = torch.where(known, (a[:, None, None] * depth + b[:, None, None]).clamp_min(1e-6), 0.0)
+    return depth.float(), affine
 
 
 def _local_frame(cfg: SplitConfig, is_reference: bool, sub: Views, gen: torch.Generator) -> Tensor:
@@ -456,6 +388,15 @@ def write_split(result: SplitResult, out: str | Path, *, overwrite: bool = False
     earlier split with more robots survives.
     """
     out = Path(out)
+    _prepare_output(out, overwrite)
+    _write_view_folders(result, out)
+    write_json(out / "truth.json", _truth(result))
+    write_json(out / "split.json", _split_record(result))
+    write_json(out / "scene.json", _scene(result))
+    return out
+
+
+def _prepare_output(out: Path, overwrite: bool) -> None:
     if out.exists() and not out.is_dir():
         raise DataError(f"{out}: exists and is not a folder")
     if out.exists() and any(out.iterdir()):
@@ -467,8 +408,11 @@ def write_split(result: SplitResult, out: str | Path, *, overwrite: bool = False
             elif p.exists():
                 p.unlink()
     out.mkdir(parents=True, exist_ok=True)
-    cfg = result.config
 
+
+def _write_view_folders(result: SplitResult, out: Path) -> None:
+    """``robot<id>/`` (local frame; images only without poses) and ``eval/`` (world frame)."""
+    cfg = result.config
     for rid, rob in result.robots.items():
         write_views_folder(
             rob.views,
@@ -498,6 +442,10 @@ def write_split(result: SplitResult, out: str | Path, *, overwrite: bool = False
             },
         )
 
+
+def _truth(result: SplitResult) -> dict:
+    """``truth.json``: what only the evaluation may read."""
+    cfg = result.config
     t_shared = result.T_shared_from_local
     truth = {
         "note": "Evaluation only: the agents never read this file.",
@@ -529,37 +477,42 @@ def write_split(result: SplitResult, out: str | Path, *, overwrite: bool = False
                 "per_view": {n: [float(a), float(b)] for n, (a, b) in zip(rob.views.names, rob.depth_affine)},
             }
         truth["robots"][str(rid)] = entry
-    write_json(out / "truth.json", truth)
+    return truth
 
-    write_json(
-        out / "split.json",
-        {
-            "source": result.source,
-            "config": dataclasses.asdict(cfg),
-            "center": result.center.tolist(),
-            "up": result.up.tolist(),
-            "sector_margin_deg": result.margin_deg,
-            "target_overlap": cfg.overlap,
-            "mean_overlap": result.mean_overlap,
-            "robots": {
-                str(rid): {
-                    "count": len(rob.indices),
-                    "views": rob.views.names,
-                    "sector_deg": list(rob.sector_deg),
-                    "overlap": rob.overlap,
-                }
-                for rid, rob in result.robots.items()
-            },
-            "eval": {
-                "holdout_every": cfg.holdout_every,
-                "views": result.eval_views.names,
-                "seen_by": result.seen_by,
-            },
-            "notes": result.notes,
+
+def _split_record(result: SplitResult) -> dict:
+    """``split.json``: how the split was made and what each robot got."""
+    cfg = result.config
+    return {
+        "source": result.source,
+        "config": dataclasses.asdict(cfg),
+        "center": result.center.tolist(),
+        "up": result.up.tolist(),
+        "sector_margin_deg": result.margin_deg,
+        "target_overlap": cfg.overlap,
+        "mean_overlap": result.mean_overlap,
+        "robots": {
+            str(rid): {
+                "count": len(rob.indices),
+                "views": rob.views.names,
+                "sector_deg": list(rob.sector_deg),
+                "overlap": rob.overlap,
+            }
+            for rid, rob in result.robots.items()
         },
-    )
-    if cfg.images_only:
-        scene = {
+        "eval": {
+            "holdout_every": cfg.holdout_every,
+            "views": result.eval_views.names,
+            "seen_by": result.seen_by,
+        },
+        "notes": result.notes,
+    }
+
+
+def _scene(result: SplitResult) -> dict:
+    """``scene.json``: the shared frame's field box, which every robot reads."""
+    if result.config.images_only:
+        return {
             "reference_id": result.reference_id,
             "box_from_shared": None,
             "description": (
@@ -568,14 +521,11 @@ def write_split(result: SplitResult, out: str | Path, *, overwrite: bool = False
                 "field box [-1, 1]^3) from its own SfM at start and shares it with its peers."
             ),
         }
-    else:
-        scene = {
-            "reference_id": result.reference_id,
-            "box_from_shared": matrix_to_list(result.box_from_shared),
-            "description": (
-                "box_from_shared maps the shared frame g (the local frame of the reference robot) into the "
-                "normalised field box [-1, 1]^3; robot i maps its local points with box_from_shared @ T_i."
-            ),
-        }
-    write_json(out / "scene.json", scene)
-    return out
+    return {
+        "reference_id": result.reference_id,
+        "box_from_shared": matrix_to_list(result.box_from_shared),
+        "description": (
+            "box_from_shared maps the shared frame g (the local frame of the reference robot) into the "
+            "normalised field box [-1, 1]^3; robot i maps its local points with box_from_shared @ T_i."
+        ),
+    }

@@ -1,6 +1,6 @@
 """The in-memory form of a set of posed images, shared by every loader and consumer.
 
-Conventions (the same everywhere in the project, see ``agent.geometry``):
+Conventions (the same everywhere in the project, see ``agent.camera``):
 - ``c2w`` are camera-to-world matrices in the OpenGL/Blender convention (camera looks down -Z,
   +Y up in the image, +X right).
 - ``intrinsics`` are per view ``(fx, fy, cx, cy)`` in pixels of *this* resolution, with the
@@ -21,6 +21,13 @@ from torch import Tensor
 
 class DataError(ValueError):
     """A data folder or file is missing or malformed. The message says what was expected."""
+
+
+# What agent.data.loaders.load_views accepts, for the messages of the errors a user can fix.
+EXPECTED_LAYOUTS = (
+    "expected transforms.json, transforms_train.json, a COLMAP model (sparse/0/ or cameras/images/points3D "
+    ".bin|.txt), a folder of images, or 'procedural[:views=100,width=64,seed=0]'"
+)
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Camera rays from posed pixels, in the camera's world frame (OpenGL convention).
+"""Camera rays from posed pixels, in the camera's world frame (conventions: :mod:`agent.camera`).
 
 Rays are built from camera-to-world matrices so that a pose transform applied to ``c2w``
 (``agent.geometry.transform_c2w``) is differentiated through the ray origins and directions.
@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+
+from agent.camera import camera_directions, pixel_centre
 
 
 @dataclass
@@ -28,11 +30,10 @@ class Rays:
 def pixel_rays(c2w: Tensor, intrinsics: Tensor, u: Tensor, v: Tensor) -> Rays:
     """Rays through pixel positions.
 
-    c2w: [R, 4, 4], intrinsics: [R, 4] (fx, fy, cx, cy), u, v: [R] pixel coordinates where the
-    centre of pixel (column i, row j) is (i + 0.5, j + 0.5). Image rows go down, camera +Y up.
+    c2w: [R, 4, 4], intrinsics: [R, 4] (fx, fy, cx, cy), u, v: [R] pixel coordinates (pixel
+    centres at i + 0.5, :mod:`agent.camera`).
     """
-    fx, fy, cx, cy = intrinsics.unbind(-1)
-    d_cam = torch.stack([(u - cx) / fx, -(v - cy) / fy, -torch.ones_like(u)], -1)  # [R, 3], z = -1
+    d_cam = camera_directions(intrinsics, u, v)  # [R, 3], z = -1
     norm = d_cam.norm(dim=-1)  # [R]
     d_world = (c2w[:, :3, :3] @ (d_cam / norm[:, None])[:, :, None]).squeeze(-1)
     return Rays(origins=c2w[:, :3, 3], directions=d_world, z_per_t=1.0 / norm)
@@ -46,8 +47,8 @@ def image_rays(c2w: Tensor, intrinsics: Tensor, width: int, height: int) -> Rays
         torch.arange(width, device=device, dtype=c2w.dtype),
         indexing="ij",
     )
-    u = (ii + 0.5).reshape(-1)
-    v = (jj + 0.5).reshape(-1)
+    u = pixel_centre(ii).reshape(-1)
+    v = pixel_centre(jj).reshape(-1)
     n = u.numel()
     return pixel_rays(c2w[None].expand(n, 4, 4), intrinsics[None].expand(n, 4), u, v)
 

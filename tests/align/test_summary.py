@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from agent import geometry as G
-from agent.align import AlignConfig, _project, estimate_relative, summarise
+from agent.align import AlignConfig, estimate_relative, summarise
+from agent.align.keypoints import project_keypoints as _project
 from tests.align.scene import TexturedScene, render_views, ring_cameras
 
 

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from agent.data.loaders import load_views, resize_depth
+from agent.data.images import resize_depth
+from agent.data.loaders import load_views
 from agent.data.views import DataError, Views
 
 from .helpers import blender_dataset, colmap_dataset, pose, random_rgba, write_json, write_png

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from agent.camera import unproject_depth
 from agent.data.folder import read_scene, read_truth
 from agent.data.loaders import load_views
 from agent.data.procedural import ProceduralConfig, procedural_views
@@ -25,7 +26,6 @@ from agent.geometry import (
     sim3_decompose,
     transform_c2w,
     transform_points,
-    unproject_depth,
 )
 
 

@@ -1,0 +1,133 @@
+"""Camera conventions of the whole project, said once: frames, pixels, projection, depth.
+
+- Cameras are camera-to-world ``c2w`` 4x4 matrices in the OpenGL/Blender convention: +X right,
+  +Y up in the image, the camera looks down -Z. OpenCV and COLMAP cameras (+Y down, looking
+  down +Z) differ by a flip of the camera's Y and Z axes (:data:`OPENCV_FROM_OPENGL`).
+- Intrinsics are ``[fx, fy, cx, cy]`` in pixels of the image they belong to.
+- Pixel (column i, row j) covers ``[i, i + 1) x [j, j + 1)``: its centre is at ``(i + 0.5, j + 0.5)``
+  (COLMAP's keypoints follow the same rule). OpenCV keypoints (SIFT) put the centre of pixel i at
+  i, i.e. at our pixel coordinate minus 0.5.
+- Depth is z-depth along the optical axis, 0 where unknown.
+
+Functions that take pixel positions work on numpy arrays and torch tensors alike, so that the
+numpy code (alignment, the procedural renderer) and the torch code (rays, depth) share one
+formula and its float operations.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from agent.geometry import transform_points
+
+__all__ = [
+    "OPENCV_FROM_OPENGL",
+    "PIXEL_CENTRE",
+    "OPENCV_PIXEL_OFFSET",
+    "opencv_to_opengl_c2w",
+    "w2c_opencv_to_c2w_opengl",
+    "pixel_centre",
+    "opencv_to_pixel",
+    "pixel_to_opencv",
+    "optical_axis",
+    "camera_directions",
+    "project_points",
+    "focal_from_fov",
+    "fov_from_focal",
+    "unproject_depth",
+]
+
+# diag(1, -1, -1, 1): flips the camera's Y and Z axes; its own inverse, so it maps either way.
+OPENCV_FROM_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
+PIXEL_CENTRE = 0.5  # pixel i's centre sits at coordinate i + PIXEL_CENTRE
+OPENCV_PIXEL_OFFSET = 0.5  # OpenCV keypoint coordinate = our pixel coordinate - this
+
+
+def opencv_to_opengl_c2w(c2w_opencv: np.ndarray) -> np.ndarray:
+    """OpenCV camera-to-world [..., 4, 4] -> OpenGL camera-to-world [..., 4, 4] (same centre)."""
+    return c2w_opencv @ OPENCV_FROM_OPENGL
+
+
+def w2c_opencv_to_c2w_opengl(w2c: np.ndarray) -> np.ndarray:
+    """COLMAP's world-to-camera [4, 4] (OpenCV camera) -> OpenGL camera-to-world [4, 4]."""
+    return opencv_to_opengl_c2w(np.linalg.inv(w2c))
+
+
+def pixel_centre(index):
+    """Pixel indices (int or float, numpy or torch) -> the coordinate of their centres."""
+    return index + PIXEL_CENTRE
+
+
+def opencv_to_pixel(xy_opencv):
+    """OpenCV keypoint coordinates [..., 2] -> pixel coordinates of this module's convention."""
+    return xy_opencv + OPENCV_PIXEL_OFFSET
+
+
+def pixel_to_opencv(uv):
+    """Pixel coordinates [..., 2] -> OpenCV keypoint coordinates."""
+    return uv - OPENCV_PIXEL_OFFSET
+
+
+def optical_axis(c2w):
+    """The viewing direction (world frame) of cameras c2w: [..., 4, 4] -> [..., 3]: their -Z axis."""
+    return -c2w[..., :3, 2]
+
+
+def camera_directions(intrinsics, u, v):
+    """Directions through pixel positions in the camera frame, scaled to z = -1 (not unit length).
+
+    intrinsics: [..., 4] (fx, fy, cx, cy), u, v: pixel coordinates broadcastable with
+    ``intrinsics[..., 0]`` -> [..., 3]. Image rows go down, camera +Y up. Since z = -1, a z-depth
+    times the direction is the camera-frame point.
+    """
+    fx, fy, cx, cy = (intrinsics[..., i] for i in range(4))
+    x = (u - cx) / fx
+    y = -(v - cy) / fy
+    if isinstance(x, Tensor):
+        x, y = torch.broadcast_tensors(x, y)
+        return torch.stack([x, y, -torch.ones_like(x)], -1)
+    x, y = np.broadcast_arrays(x, y)
+    return np.stack([x, y, -np.ones_like(x)], -1)
+
+
+def project_points(c2w: Tensor, intrinsics: Tensor, points: Tensor) -> tuple[Tensor, Tensor]:
+    """Pinhole projection, one camera per point; differentiable (the alignment refines through it).
+
+    c2w: [N, 3|4, 4], intrinsics: [N, 4], points: [N, 3] world -> (uv [N, 2] pixel coordinates,
+    z-depth [N]; <= 0 behind the camera). A point at the camera centre's depth plane does not
+    divide by zero (its depth is taken as 1e-12).
+    """
+    rot, centre = c2w[:, :3, :3], c2w[:, :3, 3]
+    cam = torch.einsum("nij,ni->nj", rot, points - centre)  # R^T (x - c)
+    z = -cam[:, 2]
+    zs = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
+    fx, fy, cx, cy = intrinsics.unbind(-1)
+    u = fx * cam[:, 0] / zs + cx
+    v = -fy * cam[:, 1] / zs + cy
+    return torch.stack([u, v], 1), z
+
+
+def focal_from_fov(size_px: float, fov_rad: float) -> float:
+    """Focal length in pixels of an image ``size_px`` wide (or high) seeing ``fov_rad`` across it."""
+    return 0.5 * size_px / math.tan(0.5 * fov_rad)
+
+
+def fov_from_focal(size_px: float, focal: Tensor) -> Tensor:
+    """Inverse of :func:`focal_from_fov`: the field of view in radians.  focal: [...] -> [...]."""
+    return 2 * torch.atan(0.5 * size_px / focal)
+
+
+def unproject_depth(depth: Tensor, intrinsics: Tensor, c2w: Tensor) -> Tensor:
+    """The pixels with a known z-depth as 3-D points in the frame ``c2w`` maps into (ray through the pixel centre).
+
+    depth: [H, W] (0 = unknown), intrinsics: [4], c2w: [4, 4] -> [N, 3] float64, row-major order.
+    """
+    d = depth.to(torch.float64)
+    rows, cols = torch.nonzero(d > 0, as_tuple=True)
+    z = d[rows, cols]
+    cam = camera_directions(intrinsics.to(torch.float64), pixel_centre(cols), pixel_centre(rows)) * z[:, None]  # [N, 3]
+    return transform_points(c2w.to(torch.float64), cam)

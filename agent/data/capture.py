@@ -1,0 +1,106 @@
+"""Geometry of a capture, in the world frame of its cameras: the scene centre, the up axis, each
+camera's azimuth, and the box the scene fits in (OpenGL cameras, :mod:`agent.camera`)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from agent.camera import fov_from_focal, optical_axis, unproject_depth
+from agent.data.views import DataError, Views
+
+__all__ = ["scene_center", "mean_up", "azimuths_deg", "estimate_scene_box", "DEPTH_BOX_QUANTILE", "DEPTH_BOX_PADDING"]
+
+
+def scene_center(c2w: Tensor) -> Tensor:
+    """Least-squares point closest to all optical axes.  c2w: [M, 4, 4] -> [3] float64.
+
+    Minimises ``sum_i |(I - d_i d_i^T)(p - o_i)|^2`` (distance of p to each axis). When the axes
+    are (nearly) parallel, e.g. a forward-facing capture, the mean camera centre is used instead.
+    """
+    c2w = c2w.to(torch.float64)
+    o = c2w[:, :3, 3]
+    d = optical_axis(c2w)
+    d = d / d.norm(dim=-1, keepdim=True)
+    proj = torch.eye(3, dtype=torch.float64) - d[:, :, None] * d[:, None, :]  # [M, 3, 3]
+    a = proj.sum(0)
+    b = (proj @ o[:, :, None]).sum(0)[:, 0]
+    if torch.linalg.eigvalsh(a).min() < 1e-3 * len(c2w):
+        return o.mean(0)
+    return torch.linalg.solve(a, b)
+
+
+def mean_up(c2w: Tensor) -> Tensor:
+    """The up axis of a capture.  c2w: [M, 4, 4] -> [3] unit float64.
+
+    Starts from the mean of the cameras' up vectors (their +Y axes). That mean leans towards
+    wherever the cameras happen to be (cameras looking down at an object from random azimuths
+    tilt it by several degrees), so when the cameras have no roll, i.e. their x axes are all
+    horizontal as in the Blender scenes and most captures, the axis orthogonal to every x axis
+    is used instead (smallest eigenvector of sum x x^T, signed like the mean up), which is exact.
+    """
+    c2w = c2w.to(torch.float64)
+    up = c2w[:, :3, 1].mean(0)
+    if up.norm() < 1e-6:
+        raise DataError("the cameras' up vectors cancel out; give the up axis explicitly")
+    up = up / up.norm()
+    right = c2w[:, :3, 0]
+    evals, evecs = torch.linalg.eigh(right.T @ right)
+    # roll-free cameras: x axes orthogonal to one direction (< ~2 deg rms), and spread enough to define it
+    if len(c2w) >= 3 and evals[0] < 1e-3 * len(c2w) and evals[1] > 0.05 * len(c2w):
+        normal = evecs[:, 0]
+        return normal if normal @ up > 0 else -normal
+    return up
+
+
+def _plane_basis(up: Tensor) -> tuple[Tensor, Tensor]:
+    """Two unit vectors spanning the plane orthogonal to ``up``; e1 from the world axis least
+    aligned with up (so that for up = +z the azimuth is the usual atan2(y, x))."""
+    axis = torch.zeros(3, dtype=torch.float64)
+    axis[int(up.abs().argmin())] = 1.0
+    e1 = axis - (axis @ up) * up
+    e1 = e1 / e1.norm()
+    return e1, torch.linalg.cross(up, e1)
+
+
+def azimuths_deg(c2w: Tensor, center: Tensor, up: Tensor) -> Tensor:
+    """Azimuth in [0, 360) of each camera centre about ``up`` through ``center``.  -> [M] float64."""
+    e1, e2 = _plane_basis(up.to(torch.float64))
+    v = c2w[:, :3, 3].to(torch.float64) - center.to(torch.float64)
+    return torch.rad2deg(torch.atan2(v @ e2, v @ e1)) % 360.0
+
+
+DEPTH_BOX_QUANTILE = 0.01  # per axis, each side: sparse SfM depth has outliers far from the scene
+DEPTH_BOX_PADDING = 0.2  # of the quantile bounds' largest extent
+
+
+def estimate_scene_box(views: Views) -> tuple[Tensor, float, str]:
+    """The world box of the scene: (centre [3], half-size, where it came from).
+
+    In order of trust: ``meta['scene_box_world']`` (the procedural scene knows it exactly; a json
+    may carry it); the bounds of the depth unprojected into the world (1st-99th percentile per
+    axis, padded by 20%); else the cameras: centre of the optical axes and the half-width of the
+    median frustum at that distance (for the Blender scenes this gives ~1.45, close to the
+    customary [-1.5, 1.5]^3).
+
+    The depth bounds must not clip the object: a box that cuts off its extremities leaves them
+    unrenderable. The 2nd-98th percentile padded by 10% cut 1.4% of lego's SfM points inside the
+    true box; an images-only swarm on it fitted its own training views at 29.93 / 32.16 dB, and at
+    32.67 / 33.44 in the true box (same true cameras, one in-process run each). With this rule the
+    box is as large as the true one (half-size 1.45) and cuts 0.04%, and the lego-2-images-only
+    scenario scores 30.19 / 30.06 dB held out instead of 29.02 / 28.90 (README).
+    """
+    box = views.meta.get("scene_box_world")
+    if isinstance(box, dict) and "center" in box and "half_size" in box:
+        return torch.tensor(box["center"], dtype=torch.float64), float(box["half_size"]), "dataset"
+    if views.depth is not None and bool((views.depth > 0).any()):
+        p = torch.cat([unproject_depth(views.depth[i], views.intrinsics[i], views.c2w[i]) for i in range(len(views))])
+        if len(p) > 200_000:
+            p = p[torch.randperm(len(p), generator=torch.Generator().manual_seed(0))[:200_000]]
+        lo, hi = torch.quantile(p, DEPTH_BOX_QUANTILE, dim=0), torch.quantile(p, 1 - DEPTH_BOX_QUANTILE, dim=0)
+        return 0.5 * (lo + hi), float(0.5 * (1 + DEPTH_BOX_PADDING) * (hi - lo).max()), "depth"
+    center = scene_center(views.c2w)
+    dist = (views.c2w[:, :3, 3].to(torch.float64) - center).norm(dim=-1)
+    fov = torch.minimum(fov_from_focal(views.width, views.intrinsics[:, 0]), fov_from_focal(views.height, views.intrinsics[:, 1]))
+    half_fov = (0.5 * fov).to(torch.float64)
+    return center, float((dist * torch.tan(half_fov)).median()), "cameras"
