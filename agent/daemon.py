@@ -174,7 +174,7 @@ class Daemon:
         with torch.no_grad():
             self.board = StatusBoard(alignment=initial, alignment_detail="",
                                      pose7=pose_summary(self.trainer.pose.matrix())["params7"])
-        align = align or AlignConfig(with_scale=self.trainer.cfg.pose.mode == "sim3")
+        align = (align or AlignConfig()).for_pose_mode(self.trainer.cfg.pose.mode)
         self.bootstrap = Bootstrap(self.trainer, summary_views if summary_views is not None else views, network,
                                    self.keys, self.membership, self.board, self.report, self._stop, align,
                                    BootstrapTiming(cfg.align_timeout_s, cfg.join_timeout_s), box_known,

@@ -31,7 +31,7 @@ class SwarmTrainingConfig:
     rounds: int = 10
     steps_per_round: int = 100
     seed: int = 0
-    holdout_every: int = 10  # every k-th own view is held out for the robot's log PSNR; 0 = none
+    own_holdout_every: int = 10  # every k-th of a robot's own views is kept for its log line's PSNR; 0 = none
     # Train on the robot's images downscaled to this width (None: as they are). A folder of
     # images only still gets its SfM from the full-size images, which need the detail.
     image_width: int | None = None
@@ -41,8 +41,8 @@ class SwarmTrainingConfig:
     def __post_init__(self) -> None:
         if self.rounds < 1 or self.steps_per_round < 1:
             raise ValueError("rounds and steps_per_round must be >= 1")
-        if self.holdout_every < 0:
-            raise ValueError("holdout_every must be >= 0")
+        if self.own_holdout_every < 0:
+            raise ValueError("own_holdout_every must be >= 0")
         if self.image_width is not None and self.image_width < 8:
             raise ValueError(f"image_width must be >= 8 pixels, got {self.image_width}")
 
@@ -56,7 +56,7 @@ def robot_seed(swarm_seed: int, robot_id: int) -> int:
     return swarm_seed * 100_003 + robot_id
 
 
-def holdout_split(views: Views, every: int) -> tuple[Views, Views | None]:
+def own_holdout_split(views: Views, every: int) -> tuple[Views, Views | None]:
     """Own views -> (training views, held-out views): indices k-1, 2k-1, ... are held out.
 
     The first view is never held out: in the paper's convention it defines the local frame.
@@ -85,7 +85,7 @@ def build_robot(
     initial_pose: Tensor | None = None,
     is_reference: bool = False,
 ) -> RobotSetup:
-    train_views, holdout = holdout_split(views, cfg.holdout_every)
+    train_views, holdout = own_holdout_split(views, cfg.own_holdout_every)
     tcfg = dataclasses.replace(
         cfg.train, seed=robot_seed(cfg.seed, robot_id), init_seed=cfg.seed, total_steps=cfg.total_steps
     )

@@ -115,7 +115,7 @@ def refine(robots: dict[int, Views], box_from_shared: torch.Tensor, args, initia
                                                                 lr_factor_from_estimate=args.refine_pose_lr_factor,
                                                                 travel_sigmas=args.refine_travel_sigmas))
     cfg = SwarmTrainingConfig(rounds=args.refine_rounds, steps_per_round=args.refine_steps, seed=args.seed,
-                              holdout_every=0, train=train)
+                              own_holdout_every=0, train=train)
     sim = Simulation(robots, {1: {2}, 2: {1}}, box_from_shared, cfg, reference_id=1)
     if initial is not None:
         sim.trainers[2].pose.set_initial(initial, sigma_deg=sigma_deg if args.refine_use_sigma else float("nan"))

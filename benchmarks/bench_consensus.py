@@ -96,7 +96,7 @@ def main() -> None:
         consensus = dataclasses.replace(consensus, rho0=args.rho)
     if args.rho_growth is not None:
         consensus = dataclasses.replace(consensus, rho_growth=args.rho_growth)
-    swarm_cfg = SwarmTrainingConfig(rounds=args.rounds, steps_per_round=args.steps, seed=args.seed, holdout_every=0,
+    swarm_cfg = SwarmTrainingConfig(rounds=args.rounds, steps_per_round=args.steps, seed=args.seed, own_holdout_every=0,
                                     consensus=consensus, train=train)
     total = swarm_cfg.total_steps
     results: dict = {"args": {k: str(v) for k, v in vars(args).items()}, "total_steps_per_model": total}

@@ -23,7 +23,7 @@ def split(
     robots: int = typer.Option(2, "--robots", "-n", help="Number of robots (ids 1..N; the reference is 1)."),
     out: Path = typer.Option(..., "--out", help="Output folder (robot<id>/, eval/, truth.json, split.json, scene.json)."),
     overlap: float = typer.Option(0.0, help="Mean fraction of a robot's views shared with a neighbour, 0-0.4."),
-    holdout_every: int = typer.Option(8, help="Hold out every k-th view (0, k, 2k, ...) for evaluation; 0 = none."),
+    test_every: int = typer.Option(8, help="Every k-th view (0, k, 2k, ...) is a test view, seen by no robot; 0 = none."),
     frame: str = typer.Option("first_camera", help="Local frames: first_camera | offset | world | random."),
     width: int = typer.Option(None, help="Downscale images to this width (area interpolation)."),
     depth_prior: str = typer.Option("none", help="Depth written for robots: none | true | scaled (random a_m, b_m)."),
@@ -44,7 +44,7 @@ def split(
     cfg = SplitConfig(
         robots=robots,
         overlap=overlap,
-        holdout_every=holdout_every,
+        test_every=test_every,
         frame=frame,  # type: ignore[arg-type]  # validated by SplitConfig
         depth_prior=depth_prior,  # type: ignore[arg-type]
         random_max_scale=max_scale,
@@ -55,12 +55,12 @@ def split(
     views = load_views(data, width=width)
     result = split_views(views, cfg)
     write_split(result, out, overwrite=force)
-    from cli.swarm_file import SWARM_FILE, loopback_endpoints, write_swarm_file
+    from cli.swarm_file import SWARM_FILE, loopback_endpoints, swarm_doc, write_swarm_file
 
     ids = sorted(result.robots)
     name = "".join(c if c.isalnum() or c in "-_" else "-" for c in Path(out).resolve().name) or "swarm"
-    write_swarm_file(Path(out) / SWARM_FILE, name, ids, topology,
-                     network={"endpoints": loopback_endpoints(ids, port_base)},
+    write_swarm_file(Path(out) / SWARM_FILE, swarm_doc(name, ids, topology,
+                                                      network={"endpoints": loopback_endpoints(ids, port_base)}),
                      header="written by `dinerf-agent split`; edit freely (see cli/swarm_file.py)")
 
     console = Console()
@@ -83,7 +83,7 @@ def split(
     n_eval = len(result.eval_indices)
     console.print(
         f"overlap: mean {100 * result.mean_overlap:.1f}% (asked {100 * overlap:.0f}%, sector margin {result.margin_deg:.1f} deg); "
-        f"eval: {n_eval} views (every {holdout_every}th from 0)"
+        f"test views: {n_eval} (every {test_every}th from 0)"
         + (f", {sum(1 for s in result.seen_by if len(s) == 0)} seen by no robot" if n_eval else "")
     )
     console.print(f"scene box: {result.box_source}; depth prior: {depth_prior}; truth.json is for evaluation only")

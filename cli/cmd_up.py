@@ -50,10 +50,10 @@ def up(
         raise UserError(f"{base_dir / cfg.swarm.scene} has no field box (robots with images only): set "
                         "daemon.initial_pose = 'coarse' so that the reference shares the box of its SfM frame")
     # a folder of images only: SfM on the full-size images (cached), then downscaled to the training width
-    views = load_views(data, width=cfg.training.image_width, sfm_cache_dir=run_dir / SFM_CACHE)
+    views = load_views(data, width=cfg.training.image_width, sfm_cache_dir=run_dir / SFM_CACHE, sfm=cfg.sfm)
     summary_views = None  # the keyframe summary's features come from the sharper images when there are any
     if cfg.daemon.initial_pose == "coarse" and cfg.daemon.summary_width != cfg.training.image_width:
-        full = load_views(data, width=cfg.daemon.summary_width, sfm_cache_dir=run_dir / SFM_CACHE)
+        full = load_views(data, width=cfg.daemon.summary_width, sfm_cache_dir=run_dir / SFM_CACHE, sfm=cfg.sfm)
         summary_views = full if full.width != views.width else None
     transport_cfg = cfg.transport_for(robot_id, listen, connect)
 
@@ -64,11 +64,11 @@ def up(
     daemon = None
     try:
         daemon = Daemon(robot_id, views, scene.box_from_shared, cfg.identity(), cfg.training, cfg.daemon,
-                        transport, run_dir, log=_log, summary_views=summary_views)
+                        transport, run_dir, log=_log, summary_views=summary_views, align=cfg.align)
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: daemon.stop())
-        _log(f"[robot {robot_id}] up: swarm '{cfg.swarm.name}' ({cfg.swarm.topology}: "
-             f"neighbours {sorted(cfg.topology().neighbours(robot_id))}), {len(views)} views, "
+        _log(f"[robot {robot_id}] up: swarm '{cfg.swarm.name}' ({cfg.topology.kind}: "
+             f"neighbours {sorted(cfg.graph().neighbours(robot_id))}), {len(views)} views, "
              f"listen {transport_cfg.listen}, connect {transport_cfg.connect}, run dir {run_dir}")
         daemon.run()
     except RuntimeError as e:  # e.g. an unusable checkpoint

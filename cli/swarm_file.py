@@ -2,12 +2,13 @@
 
 ::
 
-    [swarm]                      # who: name, robots, topology, the shared field box
+    [swarm]                      # who: name, robots, the shared field box
     name = "demo"
     robots = [1, 2, 3]
-    topology = "line"            # full | ring | star | line | edges
-    edges = []                   # for "edges": [[1, 2], [2, 3]]
     scene = "scene.json"         # relative to this file (written by `dinerf-agent split`)
+
+    [topology]                   # protocol.membership.TopologyConfig
+    kind = "line"                # full | ring | star | line | edges (+ edges = [[1, 2]], hub = 1)
 
     [network]                    # protocol.transport.TransportConfig, plus endpoints
     lease_ms = 2000
@@ -16,6 +17,10 @@
 
     [training]                   # agent.swarm.SwarmTrainingConfig (rounds, steps, rho, model ...)
     [daemon]                     # agent.daemon.DaemonConfig (timeouts, threads, wire dtype ...)
+    [align]                      # agent.align.AlignConfig (keyframe summaries, matching)
+    [sfm]                        # agent.data.sfm.SfmConfig (robots with images only)
+
+A scenario.toml has the same sections (cli.scenario.spec), so one setting has one name.
 """
 
 from __future__ import annotations
@@ -24,11 +29,13 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from agent.align import AlignConfig
 from agent.daemon import DaemonConfig, SwarmIdentity
+from agent.data.sfm import SfmConfig
 from agent.swarm import SwarmTrainingConfig
-from cli.config import ConfigError, apply_overrides, from_dict, load_toml
+from cli.config import ConfigError, apply_overrides, from_dict, load_toml, to_dict
 from protocol.keys import validate_swarm
-from protocol.membership import Topology, TopologyError
+from protocol.membership import Topology, TopologyConfig, TopologyError
 from protocol.transport import TransportConfig
 
 SWARM_FILE = "swarm.toml"
@@ -38,9 +45,6 @@ SWARM_FILE = "swarm.toml"
 class SwarmSection:
     name: str
     robots: list[int]
-    topology: str = "full"
-    edges: list[list[int]] = field(default_factory=list)
-    hub: int | None = None
     scene: str = "scene.json"
 
 
@@ -52,19 +56,21 @@ class NetworkSection(TransportConfig):
 @dataclass
 class SwarmFile:
     swarm: SwarmSection
+    topology: TopologyConfig = field(default_factory=TopologyConfig)
     network: NetworkSection = field(default_factory=NetworkSection)
     training: SwarmTrainingConfig = field(default_factory=SwarmTrainingConfig)
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
+    align: AlignConfig = field(default_factory=AlignConfig)
+    sfm: SfmConfig = field(default_factory=SfmConfig)
 
-    def topology(self) -> Topology:
-        s = self.swarm
+    def graph(self) -> Topology:
         try:
-            return Topology.from_spec(s.topology, s.robots, edges=s.edges or None, hub=s.hub)
+            return self.topology.build(self.swarm.robots)
         except TopologyError as e:
-            raise ConfigError(f"swarm.topology: {e}") from None
+            raise ConfigError(f"topology: {e}") from None
 
     def identity(self) -> SwarmIdentity:
-        return SwarmIdentity(self.swarm.name, self.topology())
+        return SwarmIdentity(self.swarm.name, self.graph())
 
     def endpoint(self, robot_id: int) -> str | None:
         return self.network.endpoints.get(str(robot_id))
@@ -77,7 +83,7 @@ class SwarmFile:
         own = self.endpoint(robot_id)
         if listen or own:
             base["listen"] = list(listen) if listen else [own]
-        neighbours = [e for j in sorted(self.topology().neighbours(robot_id)) if (e := self.endpoint(j))]
+        neighbours = [e for j in sorted(self.graph().neighbours(robot_id)) if (e := self.endpoint(j))]
         if connect or neighbours:
             base["connect"] = list(connect) if connect else neighbours
         cfg = TransportConfig(**base)
@@ -91,16 +97,28 @@ class SwarmFile:
 def load_swarm_file(path: Path, overrides: list[str] = ()) -> tuple[SwarmFile, Path]:
     """Load and validate; returns the config and the folder relative paths are resolved against."""
     data = load_toml(path)
-    if "swarm" not in data:
-        raise ConfigError(f"{path}: missing the [swarm] table (name, robots, topology)")
+    if not isinstance(data.get("swarm"), dict):
+        raise ConfigError(f"{path}: missing the [swarm] table (name, robots)")
+    moved = sorted({"topology", "edges", "hub"} & set(data["swarm"]))
+    if moved:
+        raise ConfigError(f"{path}: swarm.{moved[0]} now lives in its own [topology] table "
+                          "(kind = \"ring\", edges = [[1, 2]], hub = 1), as in scenario.toml")
     cfg = from_dict(SwarmFile, data, "")
     cfg = apply_overrides(cfg, list(overrides))
+    _validate(cfg)
+    return cfg, path.resolve().parent
+
+
+def _validate(cfg: SwarmFile) -> None:
     try:
         validate_swarm(cfg.swarm.name)
     except ValueError as e:
         raise ConfigError(f"swarm.name: {e}") from None
-    cfg.topology()  # validates robots/edges
-    return cfg, path.resolve().parent
+    cfg.graph()  # validates robots/edges
+    try:
+        cfg.align.for_pose_mode(cfg.training.train.pose.mode)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
 
 
 def find_swarm_file(data_dir: Path) -> Path | None:
@@ -111,38 +129,30 @@ def find_swarm_file(data_dir: Path) -> Path | None:
     return None
 
 
-def write_swarm_file(
-    path: Path,
-    name: str,
-    robots: list[int],
-    topology: str = "full",
-    *,
-    edges: list[list[int]] | None = None,
-    hub: int | None = None,
-    scene: str = "scene.json",
-    network: dict | None = None,
-    training: dict | None = None,
-    daemon: dict | None = None,
-    header: str = "",
-) -> Path:
-    """Write a swarm TOML that :func:`load_swarm_file` reads back (validated before writing)."""
+def write_swarm_file(path: Path, doc: dict, header: str = "") -> Path:
+    """Write a swarm TOML (its sections as plain data) that :func:`load_swarm_file` reads back;
+    validated before writing."""
     from cli.scenario.tomlout import dumps
 
-    doc = {
-        "swarm": {"name": name, "robots": list(robots), "topology": topology, "edges": edges, "hub": hub,
-                  "scene": scene},
-        "network": network or {},
-        "training": training or {},
-        "daemon": daemon or {},
-    }
     text = (f"# {header}\n" if header else "") + dumps(doc)
     try:
-        validate_swarm(name)
-        from_dict(SwarmFile, tomllib.loads(text), "").topology()
+        _validate(from_dict(SwarmFile, tomllib.loads(text), ""))
     except (ValueError, ConfigError) as e:
         raise ConfigError(f"refusing to write an invalid swarm file {path}: {e}") from None
     path.write_text(text)
     return path
+
+
+def swarm_doc(name: str, robots: list[int], topology: TopologyConfig | str = "full", scene: str = "scene.json",
+              **sections: dict) -> dict:
+    """A swarm file's sections as plain data: [swarm], [topology] and any of network, training,
+    daemon, align, sfm (dicts of the settings that differ from the defaults, or everything)."""
+    topo = TopologyConfig(topology) if isinstance(topology, str) else topology
+    unknown = sorted(set(sections) - {"network", "training", "daemon", "align", "sfm"})
+    if unknown:
+        raise ValueError(f"not swarm-file sections: {unknown}")
+    return {"swarm": {"name": name, "robots": list(robots), "scene": scene}, "topology": to_dict(topo),
+            **{k: v for k, v in sections.items() if v}}
 
 
 def loopback_endpoints(robots: list[int], port_base: int) -> dict[str, str]:

@@ -35,6 +35,18 @@ class TopologyError(ValueError):
     """An invalid topology specification."""
 
 
+@dataclass
+class TopologyConfig:
+    """The ``[topology]`` table of swarm.toml and scenario.toml: which robots talk to which."""
+
+    kind: str = "full"  # full | ring | star | line | edges
+    edges: list[list[int]] | None = None  # for "edges": [[1, 2], [2, 3]]
+    hub: int | None = None  # for "star" (default: the lowest id)
+
+    def build(self, ids: Iterable[int]) -> "Topology":
+        return Topology.from_spec(self.kind, ids, self.edges, self.hub)
+
+
 @dataclass(frozen=True)
 class Topology:
     """An undirected graph over robot ids. Build with :meth:`from_spec`."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 __all__ = ["AlignConfig"]
@@ -27,7 +28,9 @@ class AlignConfig:
     depth_dense_fraction: float = 0.05  # "auto" uses depth only if this fraction of pixels has it
     descriptor_scale: float = 512.0  # RootSIFT -> uint8 quantisation factor
     # --- matching and RANSAC (pairwise) ---
-    with_scale: bool = True  # Sim(3); False = SE(3) for robots that share a metric scale
+    # Sim(3) estimates, or SE(3) for robots that share a metric scale; None: as the robots' poses
+    # are learnt (training.train.pose.mode, see for_pose_mode), which a robot must agree with.
+    with_scale: bool | None = None
     match_ratio: float = 0.85  # Lowe ratio against the best match of a *different* 3-D point
     dup_radius: float = 0.02  # same physical point if closer than this fraction of the scene radius
     ransac_iters: int = 3000
@@ -50,3 +53,17 @@ class AlignConfig:
     null_factor: float = 2.0  # inliers must be >= this x the best count on shuffled matches
     min_spread: float = 0.1  # inliers' 2nd principal std must be >= this x the scene radius
     scale_range: tuple[float, float] = (1e-3, 1e3)
+
+    @property
+    def sim3(self) -> bool:
+        """Whether estimates carry a scale (unset counts as Sim(3), the general case)."""
+        return self.with_scale is not False
+
+    def for_pose_mode(self, mode: str) -> "AlignConfig":
+        """These settings for robots whose relative poses are ``mode`` (fixed | se3 | sim3): a
+        Sim(3) start for an SE(3) pose would carry a scale the pose cannot hold, and a wrong map."""
+        want = mode == "sim3"
+        if self.with_scale is not None and self.with_scale != want:
+            raise ValueError(f"align.with_scale = {str(self.with_scale).lower()} contradicts training.train.pose.mode = "
+                             f"{mode!r} (Sim(3) estimates are for sim3 poses); leave align.with_scale unset")
+        return dataclasses.replace(self, with_scale=want)

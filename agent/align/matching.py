@@ -94,7 +94,7 @@ def ransac_sim3(src: np.ndarray, dst: np.ndarray, threshold: float, cfg: AlignCo
     if len(samples) == 0:
         return None, mask
     hyp = umeyama_batched(torch.from_numpy(src64[samples]), torch.from_numpy(dst64[samples]),
-                          with_scale=cfg.with_scale).numpy()  # [B, 4, 4]
+                          with_scale=cfg.sim3).numpy()  # [B, 4, 4]
     scale = np.cbrt(np.abs(np.linalg.det(hyp[:, :3, :3])))
     hyp = hyp[(scale >= cfg.scale_range[0]) & (scale <= cfg.scale_range[1])]
     if len(hyp) == 0:
@@ -117,6 +117,6 @@ def ransac_sim3(src: np.ndarray, dst: np.ndarray, threshold: float, cfg: AlignCo
         if (new_mask == mask).all():
             break
         mask = new_mask
-        model = umeyama(torch.from_numpy(src64[mask]), torch.from_numpy(dst64[mask]), with_scale=cfg.with_scale).numpy()
+        model = umeyama(torch.from_numpy(src64[mask]), torch.from_numpy(dst64[mask]), with_scale=cfg.sim3).numpy()
     r2 = ((src64 @ model[:3, :3].T + model[:3, 3] - dst64) ** 2).sum(1)
     return model, r2 < thr2

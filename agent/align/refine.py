@@ -102,14 +102,14 @@ def refine_by_reprojection(model: np.ndarray, a: Summary, b: Summary, pairs: np.
     nan = float("nan")
     if len(pairs) < max(cfg.min_inliers, 4):
         return None, f"reprojection refinement skipped ({len(pairs)} candidate matches)", nan
-    problem = _Reprojection(model, a, b, pairs, cfg.with_scale)
+    problem = _Reprojection(model, a, b, pairs, cfg.sim3)
     c2 = cfg.reproj_scale_px ** 2
     xi = torch.zeros(7, dtype=_F64)
     r = problem.residuals(xi)
     if not torch.isfinite(r).all():
         return None, "reprojection refinement skipped (points at a camera centre)", nan
     start_px = float(_worse_view(r).median())
-    xi, r = _levenberg_marquardt(problem.residuals, xi, r, c2, cfg.reproj_iters, cfg.with_scale)
+    xi, r = _levenberg_marquardt(problem.residuals, xi, r, c2, cfg.reproj_iters, cfg.sim3)
     _, z = problem.reproject(xi)
     per_match = _worse_view(r)
     in_front = (z.reshape(2, -1) > 0).all(0)
@@ -120,7 +120,7 @@ def refine_by_reprojection(model: np.ndarray, a: Summary, b: Summary, pairs: np.
     if turn > cfg.reproj_max_change_deg:
         return None, f"reprojection refinement refused: it turned the estimate by {turn:.1f} deg", nan
     end_px = float(per_match.median())
-    sigma = _rotation_sigma_deg(torch.func.jacfwd(problem.residuals)(xi), r, c2, cfg.with_scale)
+    sigma = _rotation_sigma_deg(torch.func.jacfwd(problem.residuals)(xi), r, c2, cfg.sim3)
     return problem.transform(xi).numpy(), (f"refined on reprojection: {good} of {len(pairs)} matches within "
                                            f"{3 * cfg.reproj_scale_px:g} px, median {start_px:.2f} -> {end_px:.2f} px, "
                                            f"rotation sigma {sigma:.3f} deg"), sigma

@@ -50,6 +50,7 @@ def load_views(
     load_depth: bool = True,
     images_dir: str | Path | None = None,
     sfm_cache_dir: str | Path | None = None,
+    sfm: Any = None,
 ) -> Views:
     """Load ``source`` (a path or ``procedural[:k=v,...]``) as :class:`Views`.
 
@@ -59,6 +60,7 @@ def load_views(
     COLMAP sparse depth from the 3-D points).
     images_dir: where a COLMAP model's images are, when not next to the model.
     sfm_cache_dir: where SfM of an images-only folder keeps its result (default: not cached).
+    sfm: the ``agent.data.sfm.SfmConfig`` of that SfM (default: its defaults).
     """
     if width is not None and (not isinstance(width, int) or width < 1):
         raise DataError(f"width must be a positive integer, got {width!r}")
@@ -87,7 +89,7 @@ def load_views(
         return load_colmap(model, width=width, load_depth=load_depth, images_dir=images_dir)
     images = list_image_files(path) or list_image_files(path / "images")
     if images:
-        return _load_images_only(path, images, width=width, cache_dir=sfm_cache_dir)
+        return _load_images_only(path, images, width=width, cache_dir=sfm_cache_dir, config=sfm)
     if (path / "split.json").is_file():
         robots = sorted(p.name for p in path.glob("robot*") if p.is_dir())
         raise DataError(f"{path} is the output of `dinerf-agent split`; load one of its folders: {robots + ['eval']}")
@@ -138,7 +140,8 @@ def parse_procedural_spec(text: str, width: int | None = None):
     return cfg
 
 
-def _load_images_only(folder: Path, images: list[Path], *, width: int | None, cache_dir: str | Path | None = None) -> Views:
+def _load_images_only(folder: Path, images: list[Path], *, width: int | None, cache_dir: str | Path | None = None,
+                      config: Any = None) -> Views:
     """Hand a folder of unposed images to ``agent.data.sfm.run_sfm``, imported lazily.
 
     The SfM module may return :class:`Views` or the path of a COLMAP model it wrote; both are
@@ -160,6 +163,8 @@ def _load_images_only(folder: Path, images: list[Path], *, width: int | None, ca
         kwargs["cache_dir"] = cache_dir
         if "keep_frame" in params:  # the run's own SfM is the robot's frame: never silently redone
             kwargs["keep_frame"] = True
+    if config is not None and "config" in params:
+        kwargs["config"] = config
     result = run(folder, **kwargs)
     if isinstance(result, Views):
         return resize_views(result, width) if width is not None and width != result.width else result

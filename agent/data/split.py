@@ -66,6 +66,7 @@ __all__ = [
     "RobotSplit",
     "SplitResult",
     "split_views",
+    "test_indices",
     "write_split",
     "estimate_scene_box",
     "scene_center",
@@ -85,7 +86,7 @@ class SplitConfig:
     robots: int = 2
     ids: list[int] | None = None  # robot ids, default 1..robots; the reference is the lowest
     overlap: float = 0.0  # requested mean fraction of a robot's views shared with a neighbour, [0, 0.4]
-    holdout_every: int = 8  # every k-th view (0, k, 2k, ...) is held out for evaluation; 0 = none
+    test_every: int = 8  # every k-th view (0, k, 2k, ...) is a test view, seen by no robot; 0 = none
     frame: FrameKind = "first_camera"
     offset_rotation_deg: tuple[float, float, float] = (30.0, 30.0, 30.0)  # about x, then y, then z
     offset_translation: tuple[float, float, float] = (3.0, 3.0, 3.0)
@@ -100,6 +101,9 @@ class SplitConfig:
     sector_start_deg: float = 0.0
     images_only: bool = False  # robot folders without poses (robots must run their own SfM)
     calibrated_cameras: bool = False  # images_only: each robot folder also gets its camera's focal length
+    # Robot folders get their images at this width (e.g. for their own SfM, which needs more
+    # pixels than training); None: the dataset's width as loaded. Test views keep that width.
+    robot_image_width: int | None = None
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -110,8 +114,8 @@ class SplitConfig:
                 raise DataError(f"ids must be {self.robots} distinct non-negative integers, got {self.ids}")
         if not 0.0 <= self.overlap <= 0.4:
             raise DataError(f"overlap must be in [0, 0.4], got {self.overlap}")
-        if self.holdout_every < 0 or self.holdout_every == 1:
-            raise DataError(f"holdout_every must be 0 (none) or >= 2, got {self.holdout_every}")
+        if self.test_every < 0 or self.test_every == 1:
+            raise DataError(f"test_every must be 0 (none) or >= 2, got {self.test_every}")
         for name, allowed in (("frame", FrameKind), ("depth_prior", DepthPrior)):
             if getattr(self, name) not in allowed.__args__:
                 raise DataError(f"{name} must be one of {list(allowed.__args__)}, got {getattr(self, name)!r}")
@@ -119,6 +123,8 @@ class SplitConfig:
             raise DataError(f"random_max_scale must be >= 1, got {self.random_max_scale}")
         if self.calibrated_cameras and not self.images_only:
             raise DataError("calibrated_cameras is for images_only robots (robots with poses have their intrinsics)")
+        if self.robot_image_width is not None and self.robot_image_width < 8:
+            raise DataError(f"robot_image_width must be >= 8 pixels, got {self.robot_image_width}")
         if self.images_only and self.depth_prior != "none":
             raise DataError("images_only robots have no transforms.json to carry a depth prior; use depth_prior='none'")
 
@@ -289,13 +295,21 @@ def split_views(views: Views, cfg: SplitConfig | None = None) -> SplitResult:
     )
 
 
+def test_indices(count: int, every: int) -> list[int]:
+    """The test views of a dataset of ``count`` views: 0, k, 2k, ... (none when ``every`` is 0).
+
+    The one rule for views held out from every robot (the split) and from the centralised
+    baseline, so that both are scored on the same views."""
+    return list(range(0, count, every)) if every > 0 else []
+
+
 def _holdout(m: int, cfg: SplitConfig) -> tuple[list[int], list[int]]:
-    """(held-out view indices: every k-th, training view indices) of ``m`` source views."""
-    eval_idx = list(range(0, m, cfg.holdout_every)) if cfg.holdout_every else []
+    """(test view indices, training view indices) of ``m`` source views."""
+    eval_idx = test_indices(m, cfg.test_every)
     held = set(eval_idx)
     train_idx = [i for i in range(m) if i not in held]
     if not train_idx:
-        raise DataError(f"no training views left: {m} views with holdout_every={cfg.holdout_every}")
+        raise DataError(f"no training views left: {m} views with test_every={cfg.test_every}")
     return eval_idx, train_idx
 
 
@@ -438,7 +452,7 @@ def _write_view_folders(result: SplitResult, out: Path) -> None:
             frame_extra=[{"seen_by": s} for s in result.seen_by],
             top_extra={
                 "scene_box_world": {"center": result.box_center_world.tolist(), "half_size": result.box_half_size},
-                "dinerf": {"frame": "world", "holdout_every": cfg.holdout_every},
+                "dinerf": {"frame": "world", "test_every": cfg.test_every},
             },
         )
 
@@ -501,7 +515,7 @@ def _split_record(result: SplitResult) -> dict:
             for rid, rob in result.robots.items()
         },
         "eval": {
-            "holdout_every": cfg.holdout_every,
+            "test_every": cfg.test_every,
             "views": result.eval_views.names,
             "seen_by": result.seen_by,
         },

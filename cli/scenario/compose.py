@@ -64,7 +64,7 @@ def compose_document(spec: ScenarioSpec, compose_dir: Path) -> dict[str, Any]:
             "build": {"context": context, "dockerfile": "Dockerfile"},
             "image": IMAGE,
             "command": cmd,
-            "environment": {"PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": str(spec.run.threads)},
+            "environment": {"PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": str(spec.daemon.threads)},
             "volumes": [
                 f"./data/robot{i}:/data/robot:ro",
                 "./swarm.toml:/swarm/swarm.toml:ro",

@@ -262,7 +262,7 @@ def _baselines(spec: ScenarioSpec, out: Path, evalset, echo) -> dict:
         cfg = dataclasses.replace(spec.training.train, total_steps=steps, seed=spec.training.seed,
                                   init_seed=spec.training.seed,
                                   cameras=dataclasses.replace(spec.training.train.cameras, enabled=False))
-        run = train_baseline(views, cfg, spec.split.holdout_every)
+        run = train_baseline(views, cfg, spec.split.test_every)
         scores = evaluate_heldout(run, views, with_ssim=spec.report.ssim)
         result["centralised"] = {"psnr": _mean(scores["psnr"]), "ssim": _mean(scores["ssim"]),
                                  "seconds": time.monotonic() - t, "views": len(scores["psnr"])}
@@ -460,7 +460,7 @@ def _markdown(report: dict, spec: ScenarioSpec, ids: list[int]) -> str:
         f"- training: {spec.training.rounds} rounds x {spec.training.steps_per_round} steps, rho0 "
         f"{spec.training.consensus.rho0:g}, pose `{spec.training.train.pose.mode}`",
         f"- evaluation: {report['heldout_views']} held-out views of the whole scene (every "
-        f"{spec.split.holdout_every}th); 'others only' = held-out views outside the robot's own sector",
+        f"{spec.split.test_every}th); 'others only' = held-out views outside the robot's own sector",
         "",
     ]
     for note in report.get("notes", []):

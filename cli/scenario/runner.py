@@ -40,6 +40,7 @@ from typing import Callable
 
 from agent.telemetry import RoundRecord
 from cli.config import to_dict
+from cli.swarm_file import swarm_doc
 from cli.scenario.spec import ScenarioSpec, spec_to_dict
 from cli.scenario.tomlout import dumps
 
@@ -89,7 +90,7 @@ def prepare_split(spec: ScenarioSpec, out: Path) -> dict:
     from agent.data.split import split_views, write_split
 
     views = load_views(spec.resolved_dataset(), width=spec.split.robot_image_width or spec.width)
-    result = split_views(views, spec.split.to_split_config(spec.robots))
+    result = split_views(views, spec.split)
     if spec.split.robot_image_width is not None and spec.width is not None and result.eval_indices:
         result.eval_views = resize_views(result.eval_views, spec.width)
     write_split(result, out, overwrite=True)
@@ -105,27 +106,16 @@ def prepare_split(spec: ScenarioSpec, out: Path) -> dict:
 
 
 def swarm_document(spec: ScenarioSpec, scene: str, endpoints: dict[int, str] | None, name: str) -> dict:
-    """The swarm TOML (as a dict) every robot of a scenario gets; per-robot snapshots always on."""
-    daemon = dict(spec.daemon)
-    daemon.setdefault("threads", spec.run.threads)
-    daemon["keep_rounds"] = True  # the report evaluates rounds/<k>.pt
-    network = dict(spec.network)
-    network.setdefault("multicast_scouting", False)
+    """The swarm TOML (as a dict) every robot of a scenario gets: the scenario's swarm sections,
+    with per-robot snapshots always on (the report evaluates rounds/<k>.pt)."""
+    network = to_dict(spec.network)
+    for key in ("listen", "connect"):  # per robot, on its command line
+        network.pop(key)
     if endpoints:
         network["endpoints"] = {str(k): v for k, v in endpoints.items()}
-    return {
-        "swarm": {
-            "name": name,
-            "robots": spec.ids,
-            "topology": spec.topology.kind,
-            "edges": [list(e) for e in spec.topology.edges] if spec.topology.edges is not None else None,
-            "hub": spec.topology.hub,
-            "scene": scene,
-        },
-        "network": network,
-        "training": to_dict(spec.training),
-        "daemon": daemon,
-    }
+    return swarm_doc(name, spec.ids, spec.topology, scene, network=network, training=to_dict(spec.training),
+                     daemon={**to_dict(spec.daemon), "keep_rounds": True}, align=to_dict(spec.align),
+                     sfm=to_dict(spec.sfm))
 
 
 @dataclass
@@ -247,7 +237,7 @@ class ScenarioRunner:
         else:
             ports = free_ports(len(self.spec.ids))
             own = {i: f"tcp/127.0.0.1:{p}" for i, p in zip(self.spec.ids, ports)}
-            topo = self.spec.topology_obj()
+            topo = self.spec.graph()
             self.endpoints = {i: ([own[i]], [own[j] for j in sorted(topo.neighbours(i))]) for i in self.spec.ids}
             self.swarm = self._swarm_toml(own)
 
@@ -260,7 +250,7 @@ class ScenarioRunner:
     def _start(self, i: int) -> None:
         r = self.robots[i]
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        env.setdefault("OMP_NUM_THREADS", str(self.spec.run.threads))
+        env.setdefault("OMP_NUM_THREADS", str(self.spec.daemon.threads))
         root = str(Path(__file__).resolve().parents[2])
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         with r.log_path.open("a") as log:

@@ -12,16 +12,19 @@ error that names it. Example (every table but ``[scenario]`` is optional)::
     [split]                                    # agent.data.split.SplitConfig, see there
     overlap = 0.1
     frame = "offset"
+    test_every = 8                             # test views 0, 8, 16 ... seen by no robot
     # images_only = true                       # robots get no poses (own SfM); robot_image_width = 400
     # calibrated_cameras = true                # ... but each knows its camera's focal length (camera.json)
 
-    [topology]
+    # the sections of the swarm file (cli.swarm_file), which every robot gets:
+    [topology]                                 # protocol.membership.TopologyConfig
     kind = "ring"                              # full | ring | star | line | edges (+ edges = [[1, 2]], hub = 1)
-
     [training]                                 # agent.swarm.SwarmTrainingConfig: rounds, steps_per_round,
     rounds = 8                                 # [training.consensus] rho0 ..., [training.train.*]
-    [daemon]                                   # agent.daemon.DaemonConfig (round_timeout_s, ...)
+    [daemon]                                   # agent.daemon.DaemonConfig (round_timeout_s, threads ...)
     [network]                                  # protocol.transport.TransportConfig (lease_ms, ...)
+    [align]                                    # agent.align.AlignConfig
+    [sfm]                                      # agent.data.sfm.SfmConfig
 
     [faults]                                   # rounds count from 0
     kill = [{ robot = 3, round = 2 }]          # SIGKILL robot 3 when the swarm reaches round 2
@@ -49,11 +52,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from agent.align import AlignConfig
+from agent.daemon import DaemonConfig
+from agent.data.sfm import SfmConfig
+from agent.data.split import SplitConfig
+from agent.swarm import SwarmTrainingConfig
 from cli.config import ConfigError, from_dict, load_toml
+from protocol.membership import Topology, TopologyConfig
+from protocol.transport import TransportConfig
 
 __all__ = [
-    "SplitSpec",
-    "TopologySpec",
     "KillFault",
     "RestartFault",
     "CutFault",
@@ -81,54 +89,6 @@ def repo_root() -> Path:
 
 def scenarios_dir() -> Path:
     return repo_root() / "scenarios"
-
-
-@dataclass
-class SplitSpec:
-    """How the dataset is cut into robots; the fields of ``SplitConfig`` a scenario may set."""
-
-    overlap: float = 0.1
-    frame: str = "offset"  # first_camera | offset | world | random
-    depth_prior: str = "none"  # none | true | scaled
-    max_scale: float = 1.0  # frame = random: scale log-uniform in [1/x, x]
-    holdout_every: int = 8  # held-out views 0, k, 2k, ... (the report's evaluation set)
-    offset_rotation_deg: tuple[float, float, float] = (30.0, 30.0, 30.0)
-    offset_translation: tuple[float, float, float] = (3.0, 3.0, 3.0)
-    # Robots get images only, no poses: each runs its own SfM and its local frame is the SfM's
-    # (needs daemon.initial_pose = "coarse" and training.train.pose.mode = "sim3").
-    images_only: bool = False
-    # ... and each robot's folder a camera.json with its camera's focal length (a calibrated camera;
-    # its SfM keeps that focal length fixed). Off: every robot's SfM guesses its own.
-    calibrated_cameras: bool = False
-    # Write the robots' images at this width, e.g. for their SfM, which needs more pixels than
-    # training (training.image_width downscales them again); default: the scenario's width.
-    # The held-out views and the centralised baseline stay at the scenario's width.
-    robot_image_width: int | None = None
-    seed: int = 0
-
-    def to_split_config(self, robots: int):
-        from agent.data.split import SplitConfig
-
-        return SplitConfig(
-            robots=robots,
-            overlap=self.overlap,
-            holdout_every=self.holdout_every,
-            frame=self.frame,  # type: ignore[arg-type]  # validated by SplitConfig
-            depth_prior=self.depth_prior,  # type: ignore[arg-type]
-            random_max_scale=self.max_scale,
-            offset_rotation_deg=self.offset_rotation_deg,
-            offset_translation=self.offset_translation,
-            images_only=self.images_only,
-            calibrated_cameras=self.calibrated_cameras,
-            seed=self.seed,
-        )
-
-
-@dataclass
-class TopologySpec:
-    kind: str = "full"  # full | ring | star | line | edges
-    edges: list[tuple[int, int]] | None = None
-    hub: int | None = None
 
 
 @dataclass
@@ -250,12 +210,11 @@ class ReportSpec:
 class RunSpec:
     mode: Mode = "local"  # local: loopback processes; netns: one network namespace per robot (root)
     timeout_s: float = 900.0  # the whole swarm run, start to done
-    threads: int = 1  # torch threads of each robot (the daemon's daemon.threads unless [daemon] sets it)
     impair: Literal["auto", "netem", "relay"] = "auto"  # how [[faults.netem]] is done, see cli.scenario.netns
 
     def __post_init__(self) -> None:
-        if self.timeout_s <= 0 or self.threads < 1:
-            raise ValueError("run: timeout_s > 0 and threads >= 1")
+        if self.timeout_s <= 0:
+            raise ValueError("run: timeout_s must be > 0")
 
 
 @dataclass
@@ -263,13 +222,16 @@ class ScenarioSpec:
     name: str
     dataset: str = "procedural"
     width: int | None = None
-    robots: int = 3
+    robots: int = 3  # ids 1..robots (the split's robots)
     description: str = ""
-    split: SplitSpec = field(default_factory=SplitSpec)
-    topology: TopologySpec = field(default_factory=TopologySpec)
-    training: Any = None  # agent.swarm.SwarmTrainingConfig (filled in __post_init__)
-    daemon: dict[str, Any] = field(default_factory=dict)  # agent.daemon.DaemonConfig fields
-    network: dict[str, Any] = field(default_factory=dict)  # protocol.transport.TransportConfig fields
+    split: SplitConfig = field(default_factory=SplitConfig)
+    # the sections every robot's swarm file gets (cli.swarm_file.SwarmFile), under the same names
+    topology: TopologyConfig = field(default_factory=TopologyConfig)
+    network: TransportConfig = field(default_factory=TransportConfig)
+    training: SwarmTrainingConfig = field(default_factory=SwarmTrainingConfig)
+    daemon: DaemonConfig = field(default_factory=DaemonConfig)
+    align: AlignConfig = field(default_factory=AlignConfig)
+    sfm: SfmConfig = field(default_factory=SfmConfig)
     faults: FaultsSpec = field(default_factory=FaultsSpec)
     baseline: BaselineSpec = field(default_factory=BaselineSpec)
     report: ReportSpec = field(default_factory=ReportSpec)
@@ -277,21 +239,16 @@ class ScenarioSpec:
     path: Path | None = None  # the scenario.toml it came from (not a TOML key)
 
     def __post_init__(self) -> None:
-        from agent.swarm import SwarmTrainingConfig
-
-        if self.training is None:
-            self.training = SwarmTrainingConfig()
-        elif isinstance(self.training, dict):
-            self.training = from_dict(SwarmTrainingConfig, self.training, "training")
         if self.robots < 1:
             raise ValueError(f"robots must be >= 1, got {self.robots}")
         if self.width is not None and self.width < 8:
             raise ValueError(f"width must be >= 8, got {self.width}")
-        self.split.to_split_config(self.robots)  # validates frame, overlap ... (DataError is a ValueError)
+        if self.split.robots != self.robots or self.split.ids is not None:
+            self.split = dataclasses.replace(self.split, robots=self.robots, ids=None)  # ids 1..robots
         self._check_images()
-        self.topology_obj()  # validates kind/edges/hub against the ids
-        self._check_network()
-        self._check_daemon()
+        self.graph()  # validates kind/edges/hub against the ids
+        self.network.validate()
+        self.align.for_pose_mode(self.training.train.pose.mode)
         self._check_faults()
 
     # --- derived ------------------------------------------------------------------------------
@@ -307,16 +264,12 @@ class ScenarioSpec:
     def rounds(self) -> int:
         return int(self.training.rounds)
 
-    def topology_obj(self):
-        from protocol.membership import Topology
-
-        t = self.topology
-        edges = [list(e) for e in t.edges] if t.edges is not None else None
-        return Topology.from_spec(t.kind, self.ids, edges, t.hub)
+    def graph(self) -> Topology:
+        return self.topology.build(self.ids)
 
     @property
     def links(self) -> list[tuple[int, int]]:
-        return list(self.topology_obj().edges)
+        return list(self.graph().edges)
 
     # --- validation -------------------------------------------------------------------------------
     def _check_images(self) -> None:
@@ -330,7 +283,7 @@ class ScenarioSpec:
                 raise ValueError(f"split.robot_image_width ({w}) must be >= scenario.width ({self.width}): it is "
                                  "for giving the robots more pixels than the evaluation, not fewer")
         if self.split.images_only:
-            initial = self.daemon.get("initial_pose", "identity")
+            initial = self.daemon.initial_pose
             if initial != "coarse":
                 raise ValueError(f"split.images_only: every robot's frame is its own SfM's, so the relative poses "
                                  f"need a coarse start: set daemon.initial_pose = \"coarse\" (got {initial!r})")
@@ -338,21 +291,6 @@ class ScenarioSpec:
             if mode != "sim3":
                 raise ValueError(f"split.images_only: SfM frames have arbitrary scales, so the relative poses must "
                                  f"be Sim(3): set training.train.pose.mode = \"sim3\" (got {mode!r})")
-
-    def _check_network(self) -> None:
-        from protocol.transport import TransportConfig
-
-        for key in ("listen", "connect", "endpoints"):
-            if key in self.network:
-                raise ValueError(f"network.{key}: set by the scenario runner (one endpoint per robot and link); remove it")
-        from_dict(TransportConfig, dict(self.network), "network").validate()
-
-    def _check_daemon(self) -> None:
-        try:
-            from agent.daemon import DaemonConfig  # type: ignore[attr-defined]
-        except ImportError:  # the daemon validates its own table when it starts
-            return
-        from_dict(DaemonConfig, dict(self.daemon), "daemon")
 
     def _check_faults(self) -> None:
         ids, rounds = set(self.ids), self.rounds
@@ -448,12 +386,24 @@ def load_scenario(path: str | Path) -> ScenarioSpec:
     overlap = sorted(set(top) & set(data))
     if overlap:
         raise ConfigError(f"{path}: {overlap} given both in [scenario] and as a table")
+    _refuse_owned_keys(path, data)
     try:
         spec = from_dict(ScenarioSpec, {**top, **data})
     except ConfigError as e:
         raise ConfigError(f"{path}: {e}") from None
     spec.path = path.resolve()
     return spec
+
+
+def _refuse_owned_keys(path: Path, data: dict[str, Any]) -> None:
+    """Keys a scenario may not set, since the runner sets them per robot: said, not overridden."""
+    for key in ("listen", "connect", "endpoints"):
+        if key in (data.get("network") or {}):
+            raise ConfigError(f"{path}: network.{key} is set by the scenario runner (one endpoint per robot "
+                              "and link); remove it")
+    for key in ("robots", "ids"):
+        if key in (data.get("split") or {}):
+            raise ConfigError(f"{path}: split.{key}: the robots are [scenario] robots = N (ids 1..N)")
 
 
 def list_scenarios(root: Path | None = None) -> list[Path]:

@@ -72,7 +72,7 @@ def test_calibration_recovers_a_synthetic_sim3(views):
 
 
 def test_images_only_split_writes_world_cameras_and_no_box(views, tmp_path):
-    r = split_views(views, SplitConfig(robots=2, overlap=0.2, holdout_every=5, frame="random", images_only=True, seed=3))
+    r = split_views(views, SplitConfig(robots=2, overlap=0.2, test_every=5, frame="random", images_only=True, seed=3))
     write_split(r, tmp_path)
     assert not (tmp_path / "robot1/transforms.json").exists() and not (tmp_path / "robot2/transforms.json").exists()
     scene = json.loads((tmp_path / "scene.json").read_text())
@@ -97,7 +97,7 @@ def test_images_only_split_writes_world_cameras_and_no_box(views, tmp_path):
 
 
 def test_a_split_with_calibrated_cameras_gives_each_robot_its_focal_length_and_no_pose(views, tmp_path):
-    cfg = SplitConfig(robots=2, overlap=0.2, holdout_every=5, images_only=True, calibrated_cameras=True)
+    cfg = SplitConfig(robots=2, overlap=0.2, test_every=5, images_only=True, calibrated_cameras=True)
     write_split(split_views(views, cfg), tmp_path)
     for rid in (1, 2):
         cam = read_camera_file(tmp_path / f"robot{rid}")
@@ -110,7 +110,7 @@ def test_a_split_with_calibrated_cameras_gives_each_robot_its_focal_length_and_n
 def test_evaluation_in_calibrated_sfm_frames(views):
     """Two robots in SfM frames of different scales: after calibration the shared frame is robot 1's
     SfM frame, and the pose error is in scene units whatever that frame's scale."""
-    r = split_views(views, SplitConfig(robots=2, overlap=0.2, holdout_every=5, images_only=True))
+    r = split_views(views, SplitConfig(robots=2, overlap=0.2, test_every=5, images_only=True))
     ev = EvalSet.from_split(r)
     assert ev.needs_calibration and not ev.T_world_from_local
     sfm = {1: _sim3(11, 0.25), 2: _sim3(12, 3.0)}  # sfm <- world per robot
@@ -154,7 +154,7 @@ def test_known_frames_are_unchanged_by_the_world_unit_pose_error(views):
 def test_held_out_views_are_seen_through_the_camera_that_built_the_frame(views):
     """An SfM focal length 2% short: the held-out views get the reference's (the swarm's field is
     in its frame), a robot trained alone its own; known frames keep the truth's."""
-    r = split_views(views, SplitConfig(robots=2, overlap=0.2, holdout_every=5, images_only=True))
+    r = split_views(views, SplitConfig(robots=2, overlap=0.2, test_every=5, images_only=True))
     ev = EvalSet.from_split(r)
     truth_k = ev.views.intrinsics.clone()
     assert torch.equal(ev.shared_intrinsics(), truth_k)  # nothing calibrated yet

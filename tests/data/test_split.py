@@ -50,7 +50,7 @@ def test_centre_and_up_of_an_orbit(views):
 
 @pytest.mark.parametrize("robots", [1, 2, 3, 5])
 def test_sectors_partition_the_training_views_and_hold_out_every_kth(views, robots):
-    r = split_views(views, SplitConfig(robots=robots, holdout_every=8))
+    r = split_views(views, SplitConfig(robots=robots, test_every=8))
     assert r.eval_indices == list(range(0, 80, 8))
     assigned = [i for rob in r.robots.values() for i in rob.indices]
     assert sorted(assigned) == [i for i in range(80) if i % 8], "each training view in exactly one robot"
@@ -194,7 +194,7 @@ def test_split_errors(views, tmp_path):
         no_depth = Views(views.images[:10], views.c2w[:10], views.intrinsics[:10], views.names[:10])
         split_views(no_depth, SplitConfig(depth_prior="true"))
     with pytest.raises(DataError, match="gets no views"):
-        split_views(views.subset([1, 2, 3]), SplitConfig(robots=12, holdout_every=0))
+        split_views(views.subset([1, 2, 3]), SplitConfig(robots=12, test_every=0))
     with pytest.raises(DataError, match="overlap"):
         SplitConfig(overlap=0.5)
     with pytest.raises(DataError, match="frame must be one of"):
@@ -206,7 +206,7 @@ def test_sparse_sfm_depth_survives_split_and_downscaled_reload(tmp_path):
 
     colmap_dataset(tmp_path / "src")
     src = load_views(tmp_path / "src")
-    r = split_views(src, SplitConfig(robots=1, holdout_every=0, depth_prior="true"))
+    r = split_views(src, SplitConfig(robots=1, test_every=0, depth_prior="true"))
     write_split(r, tmp_path / "out")
     back = load_views(tmp_path / "out/robot1")
     assert back.meta["depth_sparse"] and torch.equal(back.depth, r.robots[1].views.depth)

@@ -19,14 +19,15 @@ name = "cli-tiny"
 dataset = "procedural:views=24,width=24"
 robots = 2
 [split]
+overlap = 0.1
 frame = "world"
-holdout_every = 6
+test_every = 6
 [topology]
 kind = "full"
 [training]
 rounds = 3
 steps_per_round = 6
-holdout_every = 0
+own_holdout_every = 0
 [training.train]
 rays_per_step = 256
 [training.train.field.grid]

@@ -58,7 +58,7 @@ def _check_structure(doc: dict, spec) -> None:
     services, networks = doc["services"], doc["networks"]
     assert sorted(services) == [f"robot{i}" for i in spec.ids]
     assert sorted(networks) == sorted(f"link-{a}-{b}" for a, b in links)
-    topo = spec.topology_obj()
+    topo = spec.graph()
     addr_of = {}
     for i in spec.ids:
         svc = services[f"robot{i}"]
@@ -106,7 +106,7 @@ def test_written_files_parse_back(tmp_path):
     path = write_compose(spec, tmp_path / "out" / "docker-compose.yml", with_data=True)
     doc = compose_document(spec, path.parent)
     swarm = tomllib.loads((path.parent / "swarm.toml").read_text())
-    assert swarm["swarm"]["robots"] == [1, 2, 3, 4, 5] and swarm["swarm"]["topology"] == "ring"
+    assert swarm["swarm"]["robots"] == [1, 2, 3, 4, 5] and swarm["topology"]["kind"] == "ring"
     assert swarm["swarm"]["scene"] == "scene.json" and swarm["daemon"]["keep_rounds"] is True
     for i in spec.ids:  # what the volumes mount exists
         assert (path.parent / f"data/robot{i}/transforms.json").is_file()

@@ -37,14 +37,14 @@ robots = 4
 [split]
 overlap = 0.2
 frame = "world"
-holdout_every = 6
+test_every = 6
 [topology]
 kind = "ring"
 [training]
 rounds = ROUNDS
 steps_per_round = 8
 seed = 3
-holdout_every = 0
+own_holdout_every = 0
 [training.train]
 rays_per_step = 256
 [training.train.field]

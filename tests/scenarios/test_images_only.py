@@ -3,6 +3,8 @@ report's side (frames calibrated before scoring, "alone" in a calibrated frame, 
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import math
 import sys
@@ -34,13 +36,14 @@ width = 24
 robots = 2
 [split]
 overlap = 0.2
-holdout_every = 6
+frame = "offset"
+test_every = 6
 images_only = true
 robot_image_width = 48
 [training]
 rounds = 1
 steps_per_round = 4
-holdout_every = 0
+own_holdout_every = 0
 image_width = 24
 [training.train]
 rays_per_step = 64
@@ -77,7 +80,7 @@ def error(tmp_path: Path, text: str) -> str:
 def test_spec_demands_what_images_only_robots_need(tmp_path):
     s = spec_from(tmp_path)
     assert s.split.images_only and s.split.robot_image_width == 48
-    assert s.split.to_split_config(s.robots).images_only
+    assert s.split.images_only
     assert 'initial_pose = "coarse"' in error(tmp_path, BASE.replace('initial_pose = "coarse"', 'initial_pose = "identity"'))
     assert 'initial_pose = "coarse"' in error(tmp_path, BASE.replace('[daemon]\ninitial_pose = "coarse"\n', ""))
     assert 'mode = "sim3"' in error(tmp_path, BASE.replace('mode = "sim3"', 'mode = "se3"'))
@@ -87,7 +90,7 @@ def test_spec_demands_what_images_only_robots_need(tmp_path):
     # a bigger robot width alone (known poses) is fine, and needs neither coarse nor sim3
     s = spec_from(tmp_path, BASE.replace("images_only = true", "images_only = false")
                   .replace('mode = "sim3"', 'mode = "se3"').replace('initial_pose = "coarse"', 'initial_pose = "identity"'))
-    assert not s.split.to_split_config(s.robots).images_only
+    assert not s.split.images_only
 
 
 def test_shipped_images_only_scenario():
@@ -114,7 +117,7 @@ def test_prepare_split_writes_robots_wide_and_eval_at_the_scenario_width(tmp_pat
     ev = load_views(data / "eval")
     assert (ev.width, ev.height) == (24, 24) and len(ev) == summary["eval_views"] == 4
     # the same split (views, held-out views) as at the scenario's width: it depends on the poses only
-    narrow = split_views(load_views(spec.resolved_dataset(), width=24), spec.split.to_split_config(2))
+    narrow = split_views(load_views(spec.resolved_dataset(), width=24), dataclasses.replace(spec.split, robots=2))
     assert ev.names == narrow.eval_views.names
     assert torch.allclose(ev.intrinsics, narrow.eval_views.intrinsics)
     for rid in (1, 2):

@@ -27,7 +27,7 @@ TINY_TRAINING = {
     "rounds": 5,
     "steps_per_round": 8,
     "seed": 3,
-    "holdout_every": 4,
+    "own_holdout_every": 4,
     "consensus": {"rho0": 0.05},
     "train": {
         "rays_per_step": 256,
@@ -146,7 +146,7 @@ def make_swarm(tmp: Path, robots: int = 3, topology: str = "full", frame: str = 
     """Split a tiny procedural scene into robot folders and write the swarm.toml for them."""
     from agent.data.loaders import load_views
     from agent.data.split import SplitConfig, split_views, write_split
-    from cli.swarm_file import loopback_endpoints, write_swarm_file
+    from cli.swarm_file import loopback_endpoints, swarm_doc, write_swarm_file
 
     root = tmp / "swarm"
     result = split_views(load_views(f"procedural:views={views},width={width}"),
@@ -154,10 +154,10 @@ def make_swarm(tmp: Path, robots: int = 3, topology: str = "full", frame: str = 
     write_split(result, root)
     ids = sorted(result.robots)
     daemon_cfg = {"startup_wait_s": 15.0, "round_timeout_s": 30.0, "linger_s": 1.0, "threads": 1}
-    write_swarm_file(root / "swarm.toml", f"test-{os.getpid()}-{int(time.time() * 1000) % 10**6}", ids, topology,
-                     network={"endpoints": loopback_endpoints(ids, free_port_base(max(ids)))},
-                     training=merge(TINY_TRAINING, training or {}),
-                     daemon=merge(daemon_cfg, daemon or {}))
+    name = f"test-{os.getpid()}-{int(time.time() * 1000) % 10**6}"
+    write_swarm_file(root / "swarm.toml", swarm_doc(
+        name, ids, topology, network={"endpoints": loopback_endpoints(ids, free_port_base(max(ids)))},
+        training=merge(TINY_TRAINING, training or {}), daemon=merge(daemon_cfg, daemon or {})))
     return Swarm(root, ids)
 
 
@@ -172,7 +172,7 @@ def simulate(swarm: Swarm, overrides: list[str] = ()):
 
     torch.set_num_threads(1)
     cfg, base = load_swarm_file(swarm.swarm_file, list(overrides))
-    topo = cfg.topology()
+    topo = cfg.graph()
     views = {i: load_views(swarm.root / f"robot{i}") for i in cfg.swarm.robots}
     scene = read_scene(base / cfg.swarm.scene)
     sim = Simulation(views, {i: topo.neighbours(i) for i in views}, scene.box_from_shared, cfg.training)

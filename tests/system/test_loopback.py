@@ -38,7 +38,7 @@ def run_in_process(swarm, training_cfg, daemon_cfg, links=None) -> dict[int, Dae
     from cli.swarm_file import load_swarm_file
 
     cfg, base = load_swarm_file(swarm.swarm_file)
-    topo = cfg.topology()
+    topo = cfg.graph()
     hub = LoopbackHub(links=links if links is not None else topo.edges)
     scene = read_scene(base / cfg.swarm.scene)
     daemons, nets, errors = {}, [], []
