@@ -11,6 +11,7 @@ into the shared frame g; ``box_from_shared`` maps g into the field's box [-1, 1]
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field as config_field
@@ -224,6 +225,8 @@ class RobotTrainer:
         initial_pose: Tensor | None = None,
         consensus: ConsensusConfig | None = None,
     ) -> None:
+        if cfg.field.unbounded is None:  # images that show their surroundings need all of space modelled
+            cfg = dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, unbounded=not views.has_alpha))
         self.cfg = cfg
         self.device = torch.device(cfg.device)
         dev = self.device

@@ -1,7 +1,10 @@
 """The radiance field: hash grid -> density MLP -> view-dependent colour head.
 
-The field lives in normalised box coordinates ``[-1, 1]^3``; the renderer maps rays there.
-All of its parameters are the ``theta`` that consensus drives to agreement.
+The field lives in grid coordinates ``[-1, 1]^3``: the scene's box itself for a bounded scene,
+or all of space contracted into it (``unbounded``, :mod:`agent.nerf.contraction`) for captures
+that show what lies around the object. :meth:`NGPField.to_grid` maps box coordinates there;
+the renderer maps rays into the box. All of its parameters are the ``theta`` that consensus
+drives to agreement.
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
+from agent.nerf.contraction import contract
 from agent.nerf.encoding import HashGrid, HashGridConfig
 
 
@@ -23,6 +27,9 @@ class FieldConfig:
     color_layers: int = 2
     sh_degree: int = 4  # spherical harmonics of the view direction: degree**2 coefficients
     density_bias: float = -1.0  # start nearly empty so the occupancy grid prunes early
+    # Model all of space, contracted into the cube, not only the box: for images without alpha
+    # or masks, which show the surroundings too. None: decided from the images (no alpha: True).
+    unbounded: bool | None = None
 
     def __post_init__(self) -> None:
         if not 1 <= self.sh_degree <= 4:
@@ -93,8 +100,16 @@ class NGPField(nn.Module):
         layers.append(nn.Linear(width_in, 3))
         self.color_mlp = nn.Sequential(*layers)
 
+    @property
+    def unbounded(self) -> bool:
+        return bool(self.cfg.unbounded)
+
+    def to_grid(self, x: Tensor) -> Tensor:
+        """Box coordinates [N, 3] -> the field's grid coordinates [N, 3] (the same when bounded)."""
+        return contract(x) if self.cfg.unbounded else x
+
     def density(self, x: Tensor, level_weights: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """x: [N, 3] in [-1, 1] -> (sigma [N], geo [N, G]). Points outside the box get zero density."""
+        """x: [N, 3] grid coordinates in [-1, 1] -> (sigma [N], geo [N, G]). Outside: zero density."""
         unit = (x + 1) * 0.5
         inside = ((unit >= 0) & (unit <= 1)).all(-1)
         h = self.density_mlp(self.encoding(unit.clamp(0, 1), level_weights))
@@ -107,5 +122,6 @@ class NGPField(nn.Module):
         return torch.sigmoid(self.color_mlp(torch.cat([geo, sh], -1)))
 
     def forward(self, x: Tensor, dirs: Tensor, level_weights: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """x: [N, 3] grid coordinates, dirs: [N, 3] unit -> (sigma [N], rgb [N, 3])."""
         sigma, geo = self.density(x, level_weights)
         return sigma, self.color(geo, dirs)

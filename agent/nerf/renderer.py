@@ -62,15 +62,20 @@ def render_rays(
     Gradients flow into the field and, through ``rays``, into any pose that produced them.
     """
     box_rays = transform_rays(rays, box_from_frame)
+    # a field that models all of space maps box coordinates into its grid (contraction)
+    to_grid = field.to_grid if getattr(field, "unbounded", False) else None
 
-    def density_fn(x: Tensor) -> Tensor:
-        return field.density(x, level_weights)[0]
+    def grid_of(x: Tensor) -> Tensor:
+        return x if to_grid is None else to_grid(x)
+
+    def density_fn(x: Tensor) -> Tensor:  # x: [N, 3] box coordinates
+        return field.density(grid_of(x), level_weights)[0]
 
     samples = march(box_rays.origins.detach(), box_rays.directions.detach(), grid, density_fn, march_cfg, jitter,
-                    visibility)
+                    visibility, to_grid=to_grid)
     idx = samples.ray_index
     x = box_rays.origins[idx] + samples.t_mid[:, None] * box_rays.directions[idx]  # [S, 3], differentiable
-    sigma, rgb = field(x, box_rays.directions[idx], level_weights)
+    sigma, rgb = field(grid_of(x), box_rays.directions[idx], level_weights)
     color, dist, opacity, transmittance = composite(sigma, rgb, samples)
     bg = background.expand_as(color) if background.ndim == 1 else background
     color = color + (1 - opacity[:, None]) * bg

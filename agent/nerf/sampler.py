@@ -8,6 +8,12 @@ Early termination without a custom kernel: the candidate samples in occupied cel
 evaluated without gradients in waves (the first few samples of every ray, then the next ones of
 the rays still transparent, ...), and only samples in front of the point where the
 transmittance falls below ``early_stop_eps`` are kept for the differentiable pass.
+
+A bounded scene is marched through the box [-1, 1]^3 in steps of ``step_size``. An unbounded
+one (a contracted field) is marched out to ``far``: uniform steps inside the box, and outside
+it steps that grow with the distance, ``max(step_size, cone_angle * t)`` (instant-ngp's cone
+stepping: about a pixel's footprint), so the far room costs a few hundred candidates per ray,
+most of them skipped by the occupancy grid over the contracted cube.
 """
 
 from __future__ import annotations
@@ -30,6 +36,8 @@ class MarchConfig:
     alpha_threshold: float = 0.0  # drop samples whose opacity is below this (0 = keep all)
     first_wave: int = 8  # samples per ray evaluated in the first visibility wave; later waves double
     skip_visibility_above: float = 0.6  # trainer: skip the visibility pass while it would keep more than this
+    far: float = 1000.0  # unbounded fields: how far a ray is marched (box units)
+    cone_angle: float = 1 / 32  # unbounded fields, outside the box: step = max(step_size, cone_angle * t)
 
 
 @dataclass
@@ -75,6 +83,67 @@ def exclusive_segment_cumsum(values: Tensor, ray_index: Tensor, num_rays: int) -
     return (exclusive - at_ray_start[ray_index]).to(values.dtype)
 
 
+def _uniform(t_near: Tensor, t_far: Tensor, dt: float, jitter: Tensor | None) -> tuple[Tensor, Tensor]:
+    """Steps of ``dt`` through [t_near, t_far) per ray -> (ray_index [K], t_mid [K])."""
+    steps = torch.ceil((t_far - t_near) / dt).clamp(min=0).to(torch.int64)  # [R]
+    total = int(steps.sum())
+    ray_index = torch.repeat_interleave(torch.arange(t_near.shape[0], device=t_near.device), steps)  # [K]
+    first = torch.cumsum(steps, 0) - steps
+    k = torch.arange(total, device=t_near.device) - first[ray_index]
+    offset = 0.5 if jitter is None else jitter[ray_index]
+    t_mid = t_near[ray_index] + (k + offset) * dt
+    keep = t_mid < t_far[ray_index]
+    return ray_index[keep], t_mid[keep]
+
+
+def _cone(a: Tensor, b: Tensor, step: float, cone: float, jitter: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """Steps of ``max(step, cone * t)`` through [a, b) per ray -> (ray_index, t_mid, dt), each [K].
+
+    Uniform below ``t_c = step / cone``, then geometric (``t_{k+1} = t_k (1 + cone)``), so the
+    count per ray has a closed form and the samples stay packed without a loop over steps.
+    """
+    t_c = step / cone
+    uni_end = torch.minimum(b, torch.full_like(b, t_c))
+    n_uni = torch.ceil((uni_end - a) / step).clamp(min=0)  # [R]
+    g_start = torch.maximum(a + n_uni * step, a).clamp(min=t_c)  # [R] first geometric edge
+    ratio = 1.0 + cone
+    n_geo = torch.ceil(torch.log(torch.clamp(b / g_start, min=1.0)) / torch.log(torch.tensor(ratio)))  # [R]
+    counts = (n_uni + n_geo).to(torch.int64)
+    ray_index = torch.repeat_interleave(torch.arange(a.shape[0], device=a.device), counts)
+    first = torch.cumsum(counts, 0) - counts
+    k = (torch.arange(int(counts.sum()), device=a.device) - first[ray_index]).to(a.dtype)
+    j = torch.full_like(k, 0.5) if jitter is None else jitter[ray_index]
+    nu = n_uni[ray_index]
+    is_uni = k < nu
+    g = (k - nu).clamp(min=0)
+    edge = g_start[ray_index] * torch.pow(ratio, g)
+    t_mid = torch.where(is_uni, a[ray_index] + (k + j) * step, edge * torch.pow(ratio, j))
+    dt = torch.where(is_uni, torch.full_like(t_mid, step), edge * cone)
+    keep = t_mid < b[ray_index]
+    return ray_index[keep], t_mid[keep], dt[keep]
+
+
+def _candidates_unbounded(origins: Tensor, directions: Tensor, cfg: MarchConfig,
+                          jitter: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """Before the box (cone steps), through it (uniform), after it out to ``far`` (cone steps)."""
+    t_near, t_far = ray_box_intersection(origins, directions)
+    hits = t_far > t_near
+    near = torch.full_like(t_near, cfg.near)
+    box_in = torch.where(hits, torch.maximum(t_near, near), near)
+    box_out = torch.where(hits, torch.maximum(t_far, near), near)
+    far = torch.full_like(t_near, cfg.far)
+    parts = [_cone(near, box_in, cfg.step_size, cfg.cone_angle, jitter)]
+    ri, tm = _uniform(box_in, box_out, cfg.step_size, jitter)
+    parts.append((ri, tm, torch.full_like(tm, cfg.step_size)))
+    parts.append(_cone(box_out, far, cfg.step_size, cfg.cone_angle, jitter))
+    ray_index = torch.cat([p[0] for p in parts])
+    t_mid = torch.cat([p[1] for p in parts])
+    dt = torch.cat([p[2] for p in parts])
+    order = torch.sort(t_mid, stable=True).indices
+    order = order[torch.sort(ray_index[order], stable=True).indices]  # by ray, then by distance
+    return ray_index[order], t_mid[order], dt[order]
+
+
 @torch.no_grad()
 def march(
     origins: Tensor,
@@ -84,40 +153,47 @@ def march(
     cfg: MarchConfig,
     jitter: Tensor | None = None,
     visibility: bool = True,
+    to_grid: Callable[[Tensor], Tensor] | None = None,
 ) -> Samples:
     """Candidate samples in occupied cells, thinned by early termination.
 
     origins, directions: [R, 3] in box coordinates (directions unit); jitter: [R] in [0, 1)
-    (random offsets during training, None = 0.5 for evaluation); density_fn: x [N, 3] -> sigma [N].
-    ``visibility=False`` skips the no-grad termination pass and returns every occupied candidate:
-    cheaper while the field is still translucent and the pass would prune little.
+    (random offsets during training, None = 0.5 for evaluation); density_fn: x [N, 3] (box
+    coordinates) -> sigma [N]. ``to_grid``: the field's map from box to grid coordinates when it
+    is unbounded (contracted), None for a bounded field. ``visibility=False`` skips the no-grad
+    termination pass and returns every occupied candidate: cheaper while the field is still
+    translucent and the pass would prune little.
     """
     num_rays = origins.shape[0]
     device = origins.device
-    dt = cfg.step_size
-    t_near, t_far = ray_box_intersection(origins, directions)
-    t_near = t_near.clamp(min=cfg.near)
-    steps = torch.ceil((t_far - t_near) / dt).clamp(min=0).to(torch.int64)  # [R]
-    total = int(steps.sum())
     empty = Samples(torch.zeros(0, dtype=torch.int64, device=device), origins.new_zeros(0), origins.new_zeros(0),
                     num_rays)
-    if total == 0:
-        return empty
-    ray_index = torch.repeat_interleave(torch.arange(num_rays, device=device), steps)  # [K0]
-    first = torch.cumsum(steps, 0) - steps
-    k = torch.arange(total, device=device) - first[ray_index]
-    offset = 0.5 if jitter is None else jitter[ray_index]
-    t_mid = t_near[ray_index] + (k + offset) * dt
-    keep = t_mid < t_far[ray_index]
-    x = origins[ray_index] + t_mid[:, None] * directions[ray_index]
-    keep &= grid.is_occupied(x)
-    ray_index, t_mid, x = ray_index[keep], t_mid[keep], x[keep]
+    if to_grid is None:
+        t_near, t_far = ray_box_intersection(origins, directions)
+        ray_index, t_mid = _uniform(t_near.clamp(min=cfg.near), t_far, cfg.step_size, jitter)
+        dt: float | Tensor = cfg.step_size
+    else:
+        ray_index, t_mid, dt = _candidates_unbounded(origins, directions, cfg, jitter)
     if ray_index.numel() == 0:
         return empty
+    x = origins[ray_index] + t_mid[:, None] * directions[ray_index]
+    keep = grid.is_occupied(x if to_grid is None else to_grid(x))
+    ray_index, t_mid, x = ray_index[keep], t_mid[keep], x[keep]
+    if isinstance(dt, Tensor):
+        dt = dt[keep]
+    if ray_index.numel() == 0:
+        return empty
+    dt_all = dt if isinstance(dt, Tensor) else torch.full_like(t_mid, dt)
     if not visibility:
-        return Samples(ray_index, t_mid, torch.full_like(t_mid, dt), num_rays)
+        return Samples(ray_index, t_mid, dt_all, num_rays)
+    keep = _visible(x, ray_index, dt, density_fn, cfg, num_rays)
+    return Samples(ray_index[keep], t_mid[keep], dt_all[keep], num_rays)
 
-    # Visibility in waves: rank of each sample within its ray decides its wave.
+
+def _visible(x: Tensor, ray_index: Tensor, dt: float | Tensor, density_fn: Callable[[Tensor], Tensor],
+             cfg: MarchConfig, num_rays: int) -> Tensor:
+    """Which candidates lie in front of early termination, evaluated in waves.  -> bool [S]."""
+    device = x.device
     starts, _ = segment_starts(ray_index, num_rays)
     rank = torch.arange(ray_index.numel(), device=device) - starts[ray_index]
     optical_depth = torch.zeros(num_rays, device=device, dtype=torch.float64)  # accumulated sigma * dt
@@ -135,7 +211,7 @@ def march(
             lo += width
             width *= 2
             continue
-        sigma_dt = density_fn(x[idx]).double() * dt  # [W]
+        sigma_dt = density_fn(x[idx]).double() * (dt[idx].double() if isinstance(dt, Tensor) else dt)  # [W]
         before = optical_depth[ray_index[idx]] + exclusive_segment_cumsum(sigma_dt, ray_index[idx], num_rays)
         visible = before < stop_depth
         if cfg.alpha_threshold > 0:
@@ -144,4 +220,4 @@ def march(
         optical_depth.index_add_(0, ray_index[idx], sigma_dt)
         lo += width
         width *= 2
-    return Samples(ray_index[keep], t_mid[keep], torch.full_like(t_mid[keep], dt), num_rays)
+    return keep
