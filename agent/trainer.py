@@ -20,6 +20,7 @@ from typing import Callable, Literal, Mapping
 import torch
 from torch import Tensor, nn
 
+from agent.appearance import AppearanceConfig, ColourAffine
 from agent.consensus import Consensus, ConsensusConfig
 from agent.data.views import Views
 from agent.geometry import sim3_decompose, sim3_from_params, sim3_inverse, so3_exp, transform_c2w
@@ -30,6 +31,7 @@ from agent.camera import pixel_centre
 from agent.nerf.rays import image_rays, pixel_rays
 from agent.nerf.renderer import render_image, render_rays
 from agent.nerf.sampler import MarchConfig
+from agent.pose import PoseConfig, RelativePose
 
 
 @dataclass
@@ -40,29 +42,6 @@ class OptimConfig:
     warmup_steps: int = 50
     decay_at: tuple[float, ...] = (0.6, 0.85)  # fractions of total_steps where the lr is multiplied ...
     decay_factor: float = 0.33  # ... by this
-
-
-@dataclass
-class PoseConfig:
-    mode: Literal["fixed", "se3", "sim3"] = "fixed"
-    lr_rotation: float = 2e-3  # radians per step (Adam), about the box centre
-    lr_translation: float = 2e-3  # box units per step
-    lr_scale: float = 1e-3  # log-scale per step (sim3 only)
-    start_step: int = 0  # the pose waits this many steps for the shared field to form
-    decay_to: float = 0.1  # pose lr decays geometrically to this fraction at the end
-    lr_factor_from_estimate: float = 0.1  # pose lrs x this when the start came from an estimate
-    # (the coarse alignment): Adam moves ~lr per step whatever the gradient, so a start already
-    # within ~0.1 deg is shaken loose by full-size steps against a young field. Measured on 3
-    # lego offsets, 250 joint steps: B's camera error 0.0085-0.0135 with 1.0, 0.0071-0.0077 with 0.1
-    # When the estimate states its rotation 1-sigma, the pose lrs are instead set so that over the
-    # whole run the pose can travel at most this many sigma (never above 1x). Adam steps ~lr along
-    # any gradient of steady sign, however weak: under the weak consensus penalty a robot's field
-    # and pose trade off, and against a young field that steady push is a bias, not information.
-    # Measured on lego (250 joint steps): from a start 0.007 deg off, 0.116 deg after with 0.1x,
-    # 0.086 deg with lrs at 0.1 sigma per step (a travel of ~6 sigma), 0.041 deg within 2 sigma;
-    # over 20 offsets, 20/20 within 1 deg / 0.02 units (README). A travel of a few sigma still
-    # lets the pose correct the estimate by what it says it may be wrong.
-    travel_sigmas: float = 2.0
 
 
 @dataclass
@@ -122,85 +101,7 @@ class TrainConfig:
     coarse_to_fine: CoarseToFineConfig = config_field(default_factory=CoarseToFineConfig)
     cameras: CameraRefineConfig = config_field(default_factory=CameraRefineConfig)
     depth: DepthConfig = config_field(default_factory=DepthConfig)
-
-
-class RelativePose(nn.Module):
-    """``T = B^-1 Exp(delta) B T0``: a correction ``delta`` applied in box coordinates.
-
-    Working in the box (centred, unit-sized) decouples rotation from translation: a rotation
-    turns the scene about its own centre instead of about the far-away origin of g, and the
-    translation is in units of the scene size, so one learning rate suits every dataset.
-    """
-
-    def __init__(self, initial: Tensor, box_from_shared: Tensor, mode: str) -> None:
-        super().__init__()
-        self.mode = mode
-        self.register_buffer("base", initial.detach().to(torch.float32).clone())  # T0 [4, 4]
-        self.register_buffer("box", box_from_shared.to(torch.float32).clone())  # B [4, 4]
-        self.register_buffer("box_inv", sim3_inverse(box_from_shared.double()).float())
-        self.phi = nn.Parameter(torch.zeros(3))
-        self.translation = nn.Parameter(torch.zeros(3))
-        self.log_scale = nn.Parameter(torch.zeros(()))
-        self.from_estimate = False  # T0 came from an estimate (coarse alignment), not the identity
-        self.estimate_sigma_deg = math.nan  # that estimate's rotation 1-sigma, when it stated one
-        self.set_trainable(mode != "fixed")
-
-    def set_trainable(self, trainable: bool) -> None:
-        self.phi.requires_grad_(trainable)
-        self.translation.requires_grad_(trainable)
-        self.log_scale.requires_grad_(trainable and self.mode == "sim3")
-
-    @property
-    def trainable(self) -> bool:
-        return self.phi.requires_grad
-
-    def matrix(self) -> Tensor:
-        """T_shared_from_local: [4, 4] (differentiable in the correction).
-
-        Written as ``T0 + B^-1 (Exp(delta) - I) B T0`` so that a zero correction gives T0 bit for
-        bit: freezing (or a reference election) never nudges the pose by round-off.
-        """
-        delta = sim3_from_params(self.log_scale, self.phi, self.translation)
-        eye = torch.eye(4, dtype=delta.dtype, device=delta.device)
-        return self.base + self.box_inv @ (delta - eye) @ self.box @ self.base
-
-    @torch.no_grad()
-    def freeze(self) -> None:
-        """Fold the current estimate into T0 and stop learning it (this robot became the reference).
-
-        The frozen T is the current estimate, not the identity, so the shared frame stays put.
-        """
-        if any(bool(p.detach().abs().max() > 0) for p in (self.phi, self.translation, self.log_scale)):
-            self.base.copy_(self.matrix())
-        for p in (self.phi, self.translation, self.log_scale):
-            p.zero_()
-        self.set_trainable(False)
-
-    @torch.no_grad()
-    def set_box(self, box_from_shared: Tensor) -> None:
-        """Adopt the swarm's field box (learnt at start by images-only robots); T is unchanged."""
-        T = self.matrix()
-        self.box.copy_(box_from_shared.to(self.box))
-        self.box_inv.copy_(sim3_inverse(box_from_shared.double()).to(self.box_inv))
-        self.base.copy_(T)
-        for p in (self.phi, self.translation, self.log_scale):
-            p.zero_()
-
-    @torch.no_grad()
-    def set_initial(self, transform: Tensor, sigma_deg: float = math.nan) -> None:
-        """Start from another estimate (e.g. the coarse keyframe alignment) with a zero correction.
-
-        sigma_deg: the estimate's rotation 1-sigma, which bounds how fast the pose then learns.
-        """
-        self.base.copy_(transform.to(self.base))
-        for p in (self.phi, self.translation, self.log_scale):
-            p.zero_()
-        self.from_estimate = True
-        self.estimate_sigma_deg = float(sigma_deg)
-
-    def unfreeze(self) -> None:
-        """Learn again (a robot with a lower id came back and is the reference again)."""
-        self.set_trainable(self.mode != "fixed")
+    appearance: AppearanceConfig = config_field(default_factory=AppearanceConfig)
 
 
 @dataclass
@@ -260,6 +161,7 @@ class RobotTrainer:
         self.log_focal = nn.Parameter(torch.zeros((), device=dev),
                                       requires_grad=refine and not views.meta.get("focal_calibrated", False))
 
+        self.appearance = ColourAffine(m, cfg.appearance, dev)  # per image, private (never in theta)
         o = cfg.optim
         self.theta_names = [n for n, _ in self.field.named_parameters()]
         self.optimizer = torch.optim.Adam(
@@ -272,6 +174,7 @@ class RobotTrainer:
                 {"params": [self.view_phi], "lr": cfg.cameras.lr_rotation, "name": "view_rotation"},
                 {"params": [self.view_shift], "lr": cfg.cameras.lr_translation, "name": "view_shift"},
                 {"params": [self.log_focal], "lr": cfg.cameras.lr_focal, "name": "focal"},
+                {"params": [self.appearance.params], "lr": cfg.appearance.lr, "name": "appearance"},
             ],
             betas=o.betas,
             eps=o.eps,
@@ -418,6 +321,8 @@ class RobotTrainer:
                 group["lr"] = base * self._pose_lr_factor(step)
             elif group["name"] in ("view_rotation", "view_shift", "focal"):
                 group["lr"] = base * self._camera_lr_factor(step)
+            elif group["name"] == "appearance":
+                group["lr"] = base * self._lr_factor(step) * (step >= cfg.appearance.start_step)
             else:
                 group["lr"] = base * self._lr_factor(step)
 
@@ -445,8 +350,11 @@ class RobotTrainer:
         if not use_visibility and out.num_samples:
             self.visible_fraction = 0.9 * self.visible_fraction + 0.1 * out.num_visible / out.num_samples
         self.samples_per_ray = 0.9 * self.samples_per_ray + 0.1 * out.num_samples / n
-        rgb_loss = ((out.rgb - target) ** 2).mean()
-        loss = rgb_loss
+        pred = out.rgb
+        if cfg.appearance.enabled:
+            pred = self.appearance.apply(self.appearance.params[img], out.rgb, out.opacity, bg)
+        rgb_loss = ((pred - target) ** 2).mean()
+        loss = rgb_loss + (self.appearance.penalty() if cfg.appearance.enabled else 0.0)
         depth_loss = torch.zeros((), device=self.device)
         if cfg.depth.weight > 0 and self.depth_prior is not None:
             prior = self.depth_prior[img, row, col]  # [n] local z-depth, 0 = none
@@ -497,24 +405,41 @@ class RobotTrainer:
     # --- rendering and evaluation -----------------------------------------------------------
     @torch.no_grad()
     def render(self, c2w_shared: Tensor, intrinsics: Tensor, width: int, height: int,
-               background: float = 1.0) -> dict[str, Tensor]:
-        """Render a view given in the shared frame.  c2w_shared: [4, 4] -> rgb [H, W, 3], depth, opacity."""
+               background: float = 1.0, appearance: Tensor | None = None) -> dict[str, Tensor]:
+        """Render a view given in the shared frame.  c2w_shared: [4, 4] -> rgb [H, W, 3], depth, opacity.
+
+        appearance: [12], the colour transform to see it through (agent.appearance; None: the field's own)."""
         rays = image_rays(c2w_shared.to(self.device).float(), intrinsics.to(self.device).float(), width, height)
         bg = torch.full((3,), background, device=self.device)
-        return render_image(self.field, self.grid, rays, width, height, bg, self.cfg.march, self.box_from_shared,
-                            level_weights=self.level_weights())
+        out = render_image(self.field, self.grid, rays, width, height, bg, self.cfg.march, self.box_from_shared,
+                           level_weights=self.level_weights())
+        if appearance is not None:
+            n = width * height
+            out["rgb"] = self.appearance.apply(appearance.to(self.device).expand(n, 12), out["rgb"].reshape(n, 3),
+                                               out["opacity"].reshape(n), bg).reshape(height, width, 3)
+        return out
+
+    @torch.no_grad()
+    def appearance_for(self, c2w_shared: Tensor) -> Tensor | None:
+        """The colour transform of the training view nearest each camera.  [Q, 4, 4] -> [Q, 12] (None: off)."""
+        if not self.cfg.appearance.enabled:
+            return None
+        return self.appearance.nearest(self.cameras_shared().detach(), c2w_shared.to(self.device).float())
 
     @torch.no_grad()
     def evaluate(self, views: Views, frame: Literal["local", "shared"] = "local", background: float = 1.0,
-                 with_ssim: bool = True) -> dict[str, list[float]]:
-        """PSNR/SSIM on views given in this robot's local frame (via T_i) or already in frame g."""
+                 with_ssim: bool = True, appearance: Tensor | None = None) -> dict[str, list[float]]:
+        """PSNR/SSIM on views given in this robot's local frame (via T_i) or already in frame g.
+
+        appearance: [M, 12] per view (e.g. :meth:`appearance_for`); None: the field's own colour."""
         c2w = views.c2w.to(self.device).float()
         if frame == "local":
             c2w = transform_c2w(self.pose.matrix(), c2w)
         gt = views.rgb(background).to(self.device)
         out: dict[str, list[float]] = {"psnr": [], "ssim": []}
         for i in range(len(views)):
-            pred = self.render(c2w[i], views.intrinsics[i], views.width, views.height, background)["rgb"]
+            code = None if appearance is None else appearance[i]
+            pred = self.render(c2w[i], views.intrinsics[i], views.width, views.height, background, code)["rgb"]
             out["psnr"].append(psnr(pred, gt[i]))
             if with_ssim:
                 out["ssim"].append(ssim(pred, gt[i]))
@@ -544,6 +469,7 @@ class RobotTrainer:
             "pose_from_estimate": self.pose.from_estimate,
             "pose_estimate_sigma_deg": self.pose.estimate_sigma_deg,
             "depth": {"log_scale": self.depth_log_scale.detach().clone(), "shift": self.depth_shift.detach().clone()},
+            "appearance": self.appearance.params.detach().clone(),
             "cameras": {"phi": self.view_phi.detach().clone(), "shift": self.view_shift.detach().clone(),
                         "log_focal": self.log_focal.detach().clone()},
             "optimizer": self.optimizer.state_dict(),
@@ -568,8 +494,10 @@ class RobotTrainer:
                 self.view_phi.copy_(state["cameras"]["phi"])
                 self.view_shift.copy_(state["cameras"]["shift"])
                 self.log_focal.copy_(state["cameras"]["log_focal"])
+            if "appearance" in state:
+                self.appearance.params.copy_(state["appearance"])
         opt = state["optimizer"]
-        if "cameras" not in state:  # a checkpoint from before camera refinement: no camera groups
+        if len(opt["param_groups"]) < len(self.optimizer.param_groups):  # from before newer groups
             mine = self.optimizer.state_dict()["param_groups"]
             next_id = sum(len(g["params"]) for g in opt["param_groups"])
             extra = []

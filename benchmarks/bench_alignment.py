@@ -57,7 +57,7 @@ from agent import geometry as G  # noqa: E402
 from agent.align import AlignConfig, estimate_relative, summarise  # noqa: E402
 from agent.data.split import SplitConfig, split_views  # noqa: E402
 from agent.data.views import Views  # noqa: E402
-from agent.trainer import PoseConfig  # noqa: E402
+from agent.pose import PoseConfig  # noqa: E402
 
 
 def file_bytes(data: Path, names: list[str]) -> int:

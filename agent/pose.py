@@ -1,0 +1,122 @@
+"""A robot's relative pose to the shared frame: ``T_i``, learnt jointly with the field.
+
+``T_i`` maps the robot's local frame into the shared frame g. Its learnt part is a correction
+applied in the field's box (centred and unit-sized), so that rotation and translation decouple
+and one learning rate suits every dataset. The reference robot freezes it (the gauge).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from torch import Tensor, nn
+
+from agent.geometry import sim3_from_params, sim3_inverse
+
+__all__ = ["PoseConfig", "RelativePose"]
+
+
+@dataclass
+class PoseConfig:
+    mode: Literal["fixed", "se3", "sim3"] = "fixed"
+    lr_rotation: float = 2e-3  # radians per step (Adam), about the box centre
+    lr_translation: float = 2e-3  # box units per step
+    lr_scale: float = 1e-3  # log-scale per step (sim3 only)
+    start_step: int = 0  # the pose waits this many steps for the shared field to form
+    decay_to: float = 0.1  # pose lr decays geometrically to this fraction at the end
+    lr_factor_from_estimate: float = 0.1  # pose lrs x this when the start came from an estimate
+    # (the coarse alignment): Adam moves ~lr per step whatever the gradient, so a start already
+    # within ~0.1 deg is shaken loose by full-size steps against a young field. Measured on 3
+    # lego offsets, 250 joint steps: B's camera error 0.0085-0.0135 with 1.0, 0.0071-0.0077 with 0.1
+    # When the estimate states its rotation 1-sigma, the pose lrs are instead set so that over the
+    # whole run the pose can travel at most this many sigma (never above 1x). Adam steps ~lr along
+    # any gradient of steady sign, however weak: under the weak consensus penalty a robot's field
+    # and pose trade off, and against a young field that steady push is a bias, not information.
+    # Measured on lego (250 joint steps): from a start 0.007 deg off, 0.116 deg after with 0.1x,
+    # 0.086 deg with lrs at 0.1 sigma per step (a travel of ~6 sigma), 0.041 deg within 2 sigma;
+    # over 20 offsets, 20/20 within 1 deg / 0.02 units (README). A travel of a few sigma still
+    # lets the pose correct the estimate by what it says it may be wrong.
+    travel_sigmas: float = 2.0
+
+
+
+class RelativePose(nn.Module):
+    """``T = B^-1 Exp(delta) B T0``: a correction ``delta`` applied in box coordinates.
+
+    Working in the box (centred, unit-sized) decouples rotation from translation: a rotation
+    turns the scene about its own centre instead of about the far-away origin of g, and the
+    translation is in units of the scene size, so one learning rate suits every dataset.
+    """
+
+    def __init__(self, initial: Tensor, box_from_shared: Tensor, mode: str) -> None:
+        super().__init__()
+        self.mode = mode
+        self.register_buffer("base", initial.detach().to(torch.float32).clone())  # T0 [4, 4]
+        self.register_buffer("box", box_from_shared.to(torch.float32).clone())  # B [4, 4]
+        self.register_buffer("box_inv", sim3_inverse(box_from_shared.double()).float())
+        self.phi = nn.Parameter(torch.zeros(3))
+        self.translation = nn.Parameter(torch.zeros(3))
+        self.log_scale = nn.Parameter(torch.zeros(()))
+        self.from_estimate = False  # T0 came from an estimate (coarse alignment), not the identity
+        self.estimate_sigma_deg = math.nan  # that estimate's rotation 1-sigma, when it stated one
+        self.set_trainable(mode != "fixed")
+
+    def set_trainable(self, trainable: bool) -> None:
+        self.phi.requires_grad_(trainable)
+        self.translation.requires_grad_(trainable)
+        self.log_scale.requires_grad_(trainable and self.mode == "sim3")
+
+    @property
+    def trainable(self) -> bool:
+        return self.phi.requires_grad
+
+    def matrix(self) -> Tensor:
+        """T_shared_from_local: [4, 4] (differentiable in the correction).
+
+        Written as ``T0 + B^-1 (Exp(delta) - I) B T0`` so that a zero correction gives T0 bit for
+        bit: freezing (or a reference election) never nudges the pose by round-off.
+        """
+        delta = sim3_from_params(self.log_scale, self.phi, self.translation)
+        eye = torch.eye(4, dtype=delta.dtype, device=delta.device)
+        return self.base + self.box_inv @ (delta - eye) @ self.box @ self.base
+
+    @torch.no_grad()
+    def freeze(self) -> None:
+        """Fold the current estimate into T0 and stop learning it (this robot became the reference).
+
+        The frozen T is the current estimate, not the identity, so the shared frame stays put.
+        """
+        if any(bool(p.detach().abs().max() > 0) for p in (self.phi, self.translation, self.log_scale)):
+            self.base.copy_(self.matrix())
+        for p in (self.phi, self.translation, self.log_scale):
+            p.zero_()
+        self.set_trainable(False)
+
+    @torch.no_grad()
+    def set_box(self, box_from_shared: Tensor) -> None:
+        """Adopt the swarm's field box (learnt at start by images-only robots); T is unchanged."""
+        T = self.matrix()
+        self.box.copy_(box_from_shared.to(self.box))
+        self.box_inv.copy_(sim3_inverse(box_from_shared.double()).to(self.box_inv))
+        self.base.copy_(T)
+        for p in (self.phi, self.translation, self.log_scale):
+            p.zero_()
+
+    @torch.no_grad()
+    def set_initial(self, transform: Tensor, sigma_deg: float = math.nan) -> None:
+        """Start from another estimate (e.g. the coarse keyframe alignment) with a zero correction.
+
+        sigma_deg: the estimate's rotation 1-sigma, which bounds how fast the pose then learns.
+        """
+        self.base.copy_(transform.to(self.base))
+        for p in (self.phi, self.translation, self.log_scale):
+            p.zero_()
+        self.from_estimate = True
+        self.estimate_sigma_deg = float(sigma_deg)
+
+    def unfreeze(self) -> None:
+        """Learn again (a robot with a lower id came back and is the reference again)."""
+        self.set_trainable(self.mode != "fixed")
