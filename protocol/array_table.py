@@ -75,7 +75,8 @@ def _table_entries(table: Any, expect: Expectation) -> list[tuple[str, str, tupl
     entries = []
     for entry in table:
         if (not isinstance(entry, list) or len(entry) != 3 or not isinstance(entry[0], str)
-                or entry[1] not in ARRAY_DTYPES or not isinstance(entry[2], list) or len(entry[2]) > 8
+                or not isinstance(entry[1], str) or entry[1] not in ARRAY_DTYPES  # a list would not hash
+                or not isinstance(entry[2], list) or len(entry[2]) > 8
                 or not all(is_int(d) and 0 <= d <= MAX_ROUND for d in entry[2])):
             raise Rejected("bad_shape", f"malformed array entry {str(entry)[:80]}")
         entries.append((entry[0], entry[1], tuple(entry[2])))
