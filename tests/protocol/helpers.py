@@ -16,7 +16,7 @@ import zstandard
 
 from protocol import codec
 from protocol.keys import Keys
-from protocol.messages import ModelSpec, ThetaSnapshot
+from protocol.messages import Alignment, KeyframeSummary, ModelSpec, Status, ThetaSnapshot
 
 SWARM = "testswarm"
 SENDER = 1
@@ -48,6 +48,38 @@ def snapshot(sender: int = SENDER, round: int = ROUND, seed: int = 0, swarm: str
 
 def valid_frame(**kw: Any) -> bytes:
     return codec.encode(snapshot(**kw))
+
+
+def status_message(**kw: Any) -> Status:
+    """A valid Status (any field can be overridden)."""
+    fields = dict(swarm=SWARM, sender=2, round=7, epoch=3, reference=0, phase="train", loss=0.25, psnr=None,
+                  pose=[0.0, 0.1, -0.2, 0.3, 1.0, 2.0, -3.0], neighbours_heard=[1], bytes_in=1000, bytes_out=2000,
+                  rejected={"wrong_swarm": 2}, alignment=Alignment.IDENTITY, alignment_detail="", wall_time=12.5, seconds_compute=3.0,
+                  seconds_wait=0.5)
+    fields.update(kw)
+    return Status(**fields)
+
+
+def keyframe_summary(descriptor_dtype=np.uint8, points: int = 50) -> KeyframeSummary:
+    """A valid keyframe summary without keypoints or cameras."""
+    rng = np.random.default_rng(3)
+    if descriptor_dtype == np.uint8:
+        desc = rng.integers(0, 256, (points, 32), dtype=np.uint8)
+    else:
+        desc = rng.standard_normal((points, 128)).astype(np.float32)
+    return KeyframeSummary(SWARM, 1, 0, 0, desc, rng.standard_normal((points, 3)).astype(np.float32),
+                           rng.integers(0, 5, points).astype(np.int32), image_bytes=123456)
+
+
+def keyframe_summary_with_cameras(points: int = 50, keyframes: int = 5) -> KeyframeSummary:
+    """A valid keyframe summary with keypoints and keyframe cameras (positive focal lengths)."""
+    msg = keyframe_summary(points=points)
+    rng = np.random.default_rng(4)
+    msg.keypoints = rng.uniform(0, 100, (points, 2)).astype(np.float32)
+    cams = rng.standard_normal((keyframes, 16)).astype(np.float32)
+    cams[:, 12:14] = 90.0  # focal lengths
+    msg.keyframe_cameras = cams
+    return msg
 
 
 def split_frame(data: bytes) -> tuple[dict[str, Any], bytes]:
