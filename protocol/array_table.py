@@ -16,6 +16,7 @@ import numpy as np
 
 from protocol.expectation import Expectation
 from protocol.messages import KEYFRAME_ARRAYS, KEYFRAME_CAMERA_DIM, KIND_STATUS, KIND_THETA, MAX_ROUND, Rejected, is_int
+from protocol.untrusted import describe
 
 #: Array dtypes that may appear on the wire, as little-endian numpy dtypes.
 ARRAY_DTYPES = {
@@ -78,7 +79,7 @@ def _table_entries(table: Any, expect: Expectation) -> list[tuple[str, str, tupl
                 or not isinstance(entry[1], str) or entry[1] not in ARRAY_DTYPES  # a list would not hash
                 or not isinstance(entry[2], list) or len(entry[2]) > 8
                 or not all(is_int(d) and 0 <= d <= MAX_ROUND for d in entry[2])):
-            raise Rejected("bad_shape", f"malformed array entry {str(entry)[:80]}")
+            raise Rejected("bad_shape", f"malformed array entry {describe(entry)}")
         entries.append((entry[0], entry[1], tuple(entry[2])))
     return entries
 
@@ -100,7 +101,7 @@ def _check_keyframe_table(entries: list[tuple[str, str, tuple[int, ...]]], expec
     """Descriptors, points and keyframe index of one count P, optionally keypoints and cameras."""
     names = [e[0] for e in entries]
     if names not in (list(KEYFRAME_ARRAYS[:3]), list(KEYFRAME_ARRAYS)):
-        raise Rejected("bad_shape", f"keyframe arrays {names[:6]}, want {', '.join(KEYFRAME_ARRAYS[:3])}"
+        raise Rejected("bad_shape", f"keyframe arrays {describe(names)}, want {', '.join(KEYFRAME_ARRAYS[:3])}"
                                     f" [, {', '.join(KEYFRAME_ARRAYS[3:])}]")
     (_, d_dtype, d_shape), (_, p_dtype, p_shape), (_, k_dtype, k_shape) = entries[:3]
     if d_dtype not in ("uint8", "float32") or p_dtype != "float32" or k_dtype != "int32":

@@ -34,8 +34,11 @@ from protocol.messages import (
     is_number,
     similarity_problem,
 )
+from protocol.untrusted import describe, nesting_depth
 
 MAX_STATUS_BYTES = 64 * 1024
+#: Deepest nesting a header of this schema has: header map > arrays > entry > shape list.
+MAX_HEADER_NESTING = 4
 
 
 @dataclass
@@ -119,7 +122,7 @@ def _header_map(view: memoryview, header_length: int, expect: Expectation) -> di
 
 
 def _check_schema_and_fields(h: dict[str, Any]) -> int:
-    """Schema first (another version may legitimately have other fields), then the field set."""
+    """Schema first (another version may legitimately have other fields), the field set, its nesting."""
     schema = h.get("schema")
     if not is_int(schema):
         raise Rejected("bad_header", "schema version missing or not an integer")
@@ -127,15 +130,17 @@ def _check_schema_and_fields(h: dict[str, Any]) -> int:
         raise Rejected("bad_schema", f"schema {schema}, we speak {SCHEMA_VERSION}")
     if set(h) != set(HEADER_FIELDS):
         missing = sorted(set(HEADER_FIELDS) - set(h))
-        extra = sorted(str(k)[:32] for k in set(h) - set(HEADER_FIELDS))
+        extra = sorted(describe(k) for k in set(h) - set(HEADER_FIELDS))[:4]
         raise Rejected("bad_header", f"missing {missing} unexpected {extra}")
+    if nesting_depth(h, MAX_HEADER_NESTING) > MAX_HEADER_NESTING:
+        raise Rejected("bad_header", f"header nested deeper than {MAX_HEADER_NESTING} levels")
     return schema
 
 
 def _check_kind(h: dict[str, Any], kind: str | None) -> str:
     msg_kind = h["kind"]
     if msg_kind not in KINDS:
-        raise Rejected("bad_kind", f"unknown kind {str(msg_kind)[:32]!r}")
+        raise Rejected("bad_kind", f"unknown kind {describe(msg_kind)}")
     if kind is not None and msg_kind != kind:
         raise Rejected("bad_kind", f"got {msg_kind}, expected {kind}")
     return msg_kind
@@ -151,7 +156,7 @@ def _check_identity(h: dict[str, Any], expect: Expectation, key: ParsedKey | Non
 
     sender = h["sender"]
     if not is_int(sender) or not 0 <= sender <= MAX_ROUND:
-        raise Rejected("unknown_sender", f"sender {str(sender)[:32]!r} is not a robot id")
+        raise Rejected("unknown_sender", f"sender {describe(sender)} is not a robot id")
     if expect.allowed_senders is not None and sender not in expect.allowed_senders:
         raise Rejected("unknown_sender", f"sender {sender} not in {sorted(expect.allowed_senders)}")
     if key is not None and key.robot_id != sender:
@@ -160,7 +165,7 @@ def _check_identity(h: dict[str, Any], expect: Expectation, key: ParsedKey | Non
     for name in ("round", "epoch"):
         v = h[name]
         if not is_int(v) or not 0 <= v <= MAX_ROUND:
-            raise Rejected("bad_round", f"{name} {str(v)[:32]!r} is not an integer in [0, {MAX_ROUND}]")
+            raise Rejected("bad_round", f"{name} {describe(v)} is not an integer in [0, {MAX_ROUND}]")
     if key is not None and key.round is not None and key.round != h["round"]:
         raise Rejected("bad_round", f"header says round {h['round']}, key says {key.round}")
 
@@ -182,7 +187,7 @@ def _check_signature(h: dict[str, Any], msg_kind: str, expect: Expectation) -> N
 def _check_encoding(h: dict[str, Any], msg_kind: str) -> None:
     wire_dtype, compression = h["wire_dtype"], h["compression"]
     if wire_dtype not in WIRE_DTYPES or compression not in COMPRESSIONS:
-        raise Rejected("bad_encoding", f"dtype {str(wire_dtype)[:32]!r} compression {str(compression)[:32]!r}")
+        raise Rejected("bad_encoding", f"dtype {describe(wire_dtype)} compression {describe(compression)}")
     if msg_kind != KIND_THETA and wire_dtype != "float32":
         raise Rejected("bad_encoding", f"{msg_kind} messages are not quantised")
 

@@ -6,11 +6,16 @@ would kill the callback) and ``decode``, which must give the real reason, not th
 
 from __future__ import annotations
 
+import struct
+
+import msgpack
 import pytest
+import zstandard
 
 from protocol import codec
 from protocol.messages import Rejected
-from tests.protocol.helpers import expectation, split_frame, valid_frame
+from protocol.untrusted import describe, nesting_depth
+from tests.protocol.helpers import expectation, keyframe_summary, split_frame, status_message, valid_frame
 
 
 def _reason(data: bytes, entry=codec.decode, **kw) -> Rejected:
@@ -32,3 +37,69 @@ def test_array_entry_with_an_unhashable_or_odd_dtype_is_bad_shape(entry, dtype):
     table[0][1] = dtype
     exc = _reason(_with_header(arrays=table), entry)
     assert exc.reason == "bad_shape" and "malformed array entry" in exc.detail, exc
+
+
+def _packed_map(fields: dict, raw: dict[str, bytes]) -> bytes:
+    """A msgpack map of ``fields`` whose values named in ``raw`` are spliced in as pre-packed bytes."""
+    assert len(fields) < 16
+    out = bytearray([0x80 | len(fields)])
+    for k, v in fields.items():
+        out += msgpack.packb(k) + (raw[k] if k in raw else msgpack.packb(v, use_bin_type=True))
+    return bytes(out)
+
+
+def _deep_list(depth: int) -> bytes:
+    """``[[[...[0]...]]]`` nested ``depth`` lists: msgpack unpacks it (its own limit is 1024)."""
+    return b"\x91" * depth + b"\x00"
+
+
+@pytest.mark.parametrize("entry", [codec.read_header, codec.decode])
+@pytest.mark.parametrize("field", ["kind", "swarm", "sender", "round", "epoch", "signature", "wire_dtype",
+                                   "compression", "raw_length", "checksum", "arrays", "meta"])
+def test_deeply_nested_header_value_is_bad_header(entry, field):
+    header, payload = split_frame(valid_frame())
+    deep = _deep_list(1000) if field != "arrays" else b"\x91" + _deep_list(999)  # an entry nested 1000 deep
+    packed = _packed_map(header, {field: deep})
+    assert len(msgpack.unpackb(packed)) == len(header)  # msgpack itself accepts it
+    data = b"DNRF" + struct.pack("<I", len(packed)) + packed + payload
+    exc = _reason(data, entry)
+    assert exc.reason == "bad_header" and "nested" in exc.detail, exc
+
+
+def test_refusal_details_are_bounded_for_huge_values():
+    long_names = [["x" * 4000] * 200, "float32", [1]]  # str() of it is 800 kB before any [:80]
+    for changes, reason in [(dict(arrays=[long_names]), "bad_shape"), (dict(kind="k" * 4000), "bad_kind"),
+                            (dict(sender=["y" * 4000] * 100), "unknown_sender"),
+                            (dict(wire_dtype="z" * 4000, compression=["w" * 4000] * 100), "bad_encoding")]:
+        exc = _reason(_with_header(**changes), codec.read_header)
+        assert exc.reason == reason and len(exc.detail) < 400, (reason, exc.detail)
+    header, payload = split_frame(codec.encode(keyframe_summary()))
+    names = [["n" * 4000, dtype, shape] for _, dtype, shape in header["arrays"]]
+    exc = _reason(codec.pack_frame(dict(header, arrays=names), payload), codec.read_header)
+    assert exc.reason == "bad_shape" and len(exc.detail) < 300, len(exc.detail)
+    header, payload = split_frame(codec.encode(status_message(), compression="none"))
+    body = dict(msgpack.unpackb(payload), **{f"{i:04d}" + "e" * 1000: 0 for i in range(60)})
+    raw = msgpack.packb(body)
+    exc = _reason(codec.pack_frame(dict(header, raw_length=len(raw), payload_length=len(raw)), raw))
+    assert exc.reason == "bad_field" and len(exc.detail) < 300, len(exc.detail)
+
+
+def test_describe_never_recurses_and_stays_short():
+    deep: list = [0]
+    for _ in range(100_000):
+        deep = [deep]
+    for value in (deep, "s" * 10**6, [["t" * 10**5] * 10] * 1000, {"k": deep}, 2**64, b"\x00" * 10**6, 1.5, None):
+        assert len(describe(value)) < 200
+    assert nesting_depth(deep, limit=4) == 5  # stops as soon as it is past the limit
+    assert nesting_depth({"a": [[1, 2], []], "b": 3}, limit=10) == 3
+    assert nesting_depth(7, limit=0) == 0
+
+
+def test_deeply_nested_status_body_is_bad_field():
+    msg = codec.encode(status_message())
+    header, payload = split_frame(msg)
+    body = msgpack.unpackb(zstandard.ZstdDecompressor().decompress(payload))
+    raw = _packed_map(body, {"phase": _deep_list(1000)})
+    frame = codec.pack_frame(dict(header, compression="none", raw_length=len(raw), payload_length=len(raw)), raw)
+    exc = _reason(frame, codec.decode)
+    assert exc.reason == "bad_field" and "nested" in exc.detail, exc
