@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from protocol.keys import validate_swarm
-from protocol.messages import ModelSpec
+from protocol.messages import KIND_KEYFRAMES, KIND_STATUS, ModelSpec
 
 MiB = 1024 * 1024
 
@@ -21,6 +21,11 @@ class Expectation:
 
     ``allowed_senders=None`` accepts any id (e.g. ``dinerf-agent status``); a robot passes the
     ids of its swarm. ``spec=None`` refuses every snapshot (``bad_signature``).
+
+    The decompressed size a frame may declare depends on its kind (:meth:`max_raw_bytes`): a
+    snapshot's is fixed by the model spec, but a status or keyframe summary has its own small
+    cap, so a frame of a few KB can never make the receiver allocate hundreds of MB. The
+    keyframe cap is 16x the summary budget of :class:`agent.align.config.AlignConfig` (256 kB).
     """
 
     swarm: str
@@ -33,6 +38,8 @@ class Expectation:
     max_keyframe_points: int = 200_000
     max_keyframes: int = 4096
     max_descriptor_dim: int = 1024
+    max_keyframe_bytes: int = 4 * MiB
+    max_status_bytes: int = 64 * 1024
     signature: str = field(init=False, default="")
 
     def __post_init__(self) -> None:
@@ -43,6 +50,15 @@ class Expectation:
             object.__setattr__(self, "signature", self.spec.signature())
             if len(self.spec.params) > self.max_tensors:
                 raise ValueError("model spec has more tensors than max_tensors")
-        for name in ("max_wire_bytes", "max_decompressed_bytes", "max_tensors", "max_header_bytes"):
+        for name in ("max_wire_bytes", "max_decompressed_bytes", "max_tensors", "max_header_bytes",
+                     "max_keyframe_bytes", "max_status_bytes"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"Expectation.{name} must be positive")
+
+    def max_raw_bytes(self, kind: str) -> int:
+        """The largest decompressed payload a frame of this kind may declare."""
+        if kind == KIND_STATUS:
+            return min(self.max_status_bytes, self.max_decompressed_bytes)
+        if kind == KIND_KEYFRAMES:
+            return min(self.max_keyframe_bytes, self.max_decompressed_bytes)
+        return self.max_decompressed_bytes

@@ -36,7 +36,6 @@ from protocol.messages import (
 )
 from protocol.untrusted import describe, nesting_depth
 
-MAX_STATUS_BYTES = 64 * 1024
 #: Deepest nesting a header of this schema has: header map > arrays > entry > shape list.
 MAX_HEADER_NESTING = 4
 
@@ -61,7 +60,7 @@ def parse_frame(data: Any, expect: Expectation, kind: str | None, key: ParsedKey
     _check_identity(h, expect, key)
     _check_signature(h, msg_kind, expect)
     _check_encoding(h, msg_kind)
-    _check_lengths(h, len(view) - PREFIX_LENGTH - header_length, expect)
+    _check_lengths(h, msg_kind, len(view) - PREFIX_LENGTH - header_length, expect)
     checksum = h["checksum"]
     if not isinstance(checksum, str) or len(checksum) != CHECKSUM_HEX_LENGTH:
         raise Rejected("bad_header", "checksum is not a 16-character hex string")
@@ -192,24 +191,23 @@ def _check_encoding(h: dict[str, Any], msg_kind: str) -> None:
         raise Rejected("bad_encoding", f"{msg_kind} messages are not quantised")
 
 
-def _check_lengths(h: dict[str, Any], actual_payload: int, expect: Expectation) -> None:
-    """The payload is as long as declared, and the declared decompressed size is under the cap."""
+def _check_lengths(h: dict[str, Any], msg_kind: str, actual_payload: int, expect: Expectation) -> None:
+    """The payload is as long as declared, and the declared decompressed size is under the kind's cap."""
     raw_length, payload_length = h["raw_length"], h["payload_length"]
     if not is_int(raw_length) or not is_int(payload_length) or raw_length < 0 or payload_length < 0:
         raise Rejected("bad_header", "lengths must be non-negative integers")
     if payload_length != actual_payload:
         raise Rejected("bad_length", f"header says {payload_length} payload bytes, got {actual_payload}")
-    if raw_length > expect.max_decompressed_bytes:
-        raise Rejected("too_large", f"declares {raw_length} bytes > cap {expect.max_decompressed_bytes}")
+    cap = expect.max_raw_bytes(msg_kind)
+    if raw_length > cap:
+        raise Rejected("too_large", f"{msg_kind} declares {raw_length} bytes > cap {cap}")
     if h["compression"] == "none" and raw_length != payload_length:
         raise Rejected("bad_length", "uncompressed payload with raw_length != payload_length")
 
 
 def _check_raw_length(raw_length: int, arrays: ArrayTable, msg_kind: str) -> None:
-    """The declared decompressed size is what the array table needs (status: under its cap)."""
+    """The declared decompressed size is what the array table needs (a status body has no table)."""
     if msg_kind == KIND_STATUS:
-        if raw_length > MAX_STATUS_BYTES:
-            raise Rejected("too_large", f"status body of {raw_length} bytes")
         return
     expected_raw = table_bytes(arrays)
     if raw_length != expected_raw:

@@ -7,15 +7,19 @@ would kill the callback) and ``decode``, which must give the real reason, not th
 from __future__ import annotations
 
 import struct
+import time
+import tracemalloc
 
 import msgpack
 import pytest
 import zstandard
 
 from protocol import codec
+from protocol.expectation import MiB
 from protocol.messages import Rejected
 from protocol.untrusted import describe, nesting_depth
-from tests.protocol.helpers import expectation, keyframe_summary, split_frame, status_message, valid_frame
+from tests.protocol.helpers import (expectation, keyframe_summary, keyframe_summary_with_cameras, rle_zstd_frame,
+                                    split_frame, status_message, valid_frame)
 
 
 def _reason(data: bytes, entry=codec.decode, **kw) -> Rejected:
@@ -103,3 +107,51 @@ def test_deeply_nested_status_body_is_bad_field():
     frame = codec.pack_frame(dict(header, compression="none", raw_length=len(raw), payload_length=len(raw)), raw)
     exc = _reason(frame, codec.decode)
     assert exc.reason == "bad_field" and "nested" in exc.detail, exc
+
+
+def _refused_quickly_in_little_memory(data: bytes, **kw) -> Rejected:
+    tracemalloc.start()
+    t0 = time.perf_counter()
+    try:
+        exc = _reason(data, **kw)
+        elapsed = time.perf_counter() - t0
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert elapsed < 0.5 and peak < 8 * MiB, (exc, elapsed, peak)
+    return exc
+
+
+@pytest.mark.parametrize("declare_size", [True, False])
+def test_tiny_keyframe_frame_declaring_hundreds_of_mib_is_too_large_before_allocating(declare_size):
+    header, _ = split_frame(codec.encode(keyframe_summary()))
+    points, dim = 200_000, 616  # within the point and descriptor-dimension caps
+    table = [["descriptors", "float32", [points, dim]], ["points", "float32", [points, 3]],
+             ["keyframe_index", "int32", [points]]]
+    raw_length = points * (dim * 4 + 12 + 4)  # 473 MiB, under the generic 512 MiB cap
+    bomb = rle_zstd_frame(-(-raw_length // 2**17) * 2**17, declare_size)
+    data = codec.pack_frame(dict(header, arrays=table, raw_length=raw_length, payload_length=len(bomb)), bomb)
+    assert len(data) < 20_000
+    exc = _refused_quickly_in_little_memory(data)
+    assert exc.reason == "too_large" and "keyframes" in exc.detail, exc
+
+
+def test_keyframe_and_status_caps_are_the_receivers_to_set():
+    summary = codec.encode(keyframe_summary_with_cameras())
+    assert codec.decode(summary, expectation()).kind == "keyframes"
+    raw_length = split_frame(summary)[0]["raw_length"]
+    assert _reason(summary, max_keyframe_bytes=raw_length - 1).reason == "too_large"
+    assert codec.decode(summary, expectation(max_keyframe_bytes=raw_length)).kind == "keyframes"
+    status = codec.encode(status_message())
+    raw_length = split_frame(status)[0]["raw_length"]
+    assert _reason(status, max_status_bytes=raw_length - 1).reason == "too_large"
+    assert codec.Expectation("s").max_raw_bytes("keyframes") <= 16 * MiB  # a few MB, not 512 MiB
+    with pytest.raises(ValueError, match="max_keyframe_bytes"):
+        codec.Expectation("s", max_keyframe_bytes=0)
+
+
+def test_status_bomb_is_too_large_before_decompressing():
+    header, _ = split_frame(codec.encode(status_message()))
+    bomb = rle_zstd_frame(2**30, False)
+    data = codec.pack_frame(dict(header, raw_length=2**20, payload_length=len(bomb)), bomb)
+    assert _refused_quickly_in_little_memory(data).reason == "too_large"
