@@ -28,7 +28,8 @@ Pure Python + numpy + msgpack + zstandard: no zenoh, no torch.
 
 from __future__ import annotations
 
-from typing import Any
+from contextlib import contextmanager
+from typing import Any, Iterator
 
 import msgpack
 import numpy as np
@@ -72,7 +73,7 @@ from protocol.payload import decode_payload
 
 __all__ = [
     "HEADER_FIELDS", "MAGIC", "PREFIX_LENGTH", "MiB", "Expectation", "frame_checksum", "pack_frame",
-    "encode", "decode", "read_header",
+    "encode", "decode", "read_header", "UNEXPECTED",
 ]
 
 
@@ -208,15 +209,30 @@ def _encode_keyframes(msg: KeyframeSummary, compression: str, level: int) -> byt
 
 # =========================================================================== decode
 
+#: Start of the detail of a refusal that came from a bug in a check, not from the check itself.
+UNEXPECTED = "unexpected"
+
+
+@contextmanager
+def _only_rejected() -> Iterator[None]:
+    """Turn any other exception into Rejected: a bug in a check must still never crash the receiver."""
+    try:
+        yield
+    except Rejected:
+        raise
+    except Exception as exc:
+        raise Rejected("garbage", f"{UNEXPECTED} {type(exc).__name__} in a check") from None
+
 
 def read_header(data: bytes | bytearray | memoryview, expect: Expectation, *, kind: str | None = None,
                 key: ParsedKey | None = None) -> Header:
-    """Validate everything but the payload (cheap; no large allocation). Raises Rejected.
+    """Validate everything but the payload (cheap; no large allocation). Raises only Rejected.
 
     Useful in a Zenoh callback to route raw bytes by (sender, round) and leave the full
     :func:`decode` to another thread.
     """
-    return parse_frame(data, expect, kind, key).header
+    with _only_rejected():
+        return parse_frame(data, expect, kind, key).header
 
 
 def decode(data: bytes | bytearray | memoryview, expect: Expectation, *, kind: str | None = None,
@@ -226,9 +242,5 @@ def decode(data: bytes | bytearray | memoryview, expect: Expectation, *, kind: s
     ``kind`` ("theta", "status", "keyframes") refuses any other kind with ``bad_kind``; ``key``
     (the parsed key the bytes arrived on) must agree with the header's sender and round.
     """
-    try:
+    with _only_rejected():
         return decode_payload(parse_frame(data, expect, kind, key))
-    except Rejected:
-        raise
-    except Exception as exc:  # a bug in a check must still never crash the receiver
-        raise Rejected("garbage", f"unexpected {type(exc).__name__}: {exc}") from None

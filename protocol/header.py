@@ -79,7 +79,10 @@ def _split_prefix(data: Any, expect: Expectation) -> tuple[memoryview, int]:
     """The frame as bytes and its header length, once magic and prefix are sound."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise Rejected("garbage", f"expected bytes, got {type(data).__name__}")
-    view = memoryview(data).cast("B")
+    try:
+        view = memoryview(data).cast("B")
+    except (TypeError, ValueError):  # a strided or released memoryview
+        raise Rejected("garbage", "not a contiguous byte buffer") from None
     n = len(view)
     if n > expect.max_wire_bytes:
         raise Rejected("too_large", f"{n} bytes on the wire > cap {expect.max_wire_bytes}")

@@ -9,8 +9,10 @@ from __future__ import annotations
 import struct
 import time
 import tracemalloc
+import warnings
 
 import msgpack
+import numpy as np
 import pytest
 import zstandard
 
@@ -155,3 +157,36 @@ def test_status_bomb_is_too_large_before_decompressing():
     bomb = rle_zstd_frame(2**30, False)
     data = codec.pack_frame(dict(header, raw_length=2**20, payload_length=len(bomb)), bomb)
     assert _refused_quickly_in_little_memory(data).reason == "too_large"
+
+
+@pytest.mark.parametrize("entry", [codec.read_header, codec.decode])
+def test_byte_buffers_that_cannot_be_read_as_bytes_are_garbage(entry):
+    strided = memoryview(valid_frame() * 2)[::2]  # not contiguous: cannot be cast to bytes
+    released = memoryview(bytearray(valid_frame()))
+    released.release()
+    for data in (strided, released):
+        exc = _reason(data, entry)
+        assert exc.reason == "garbage" and not exc.detail.startswith(codec.UNEXPECTED), exc
+
+
+def test_field_box_with_huge_entries_is_bad_field_without_numpy_warnings():
+    header, payload = split_frame(codec.encode(keyframe_summary_with_cameras()))
+    for diagonal in (1e308, 1e200, 1e-300):
+        box = np.diag([diagonal] * 3 + [1.0]).flatten().tolist()
+        data = codec.pack_frame(dict(header, meta={"image_bytes": 1, "box_from_shared": box}), payload)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # an overflow warning per hostile frame would flood the log
+            exc = _reason(data, codec.read_header)
+        assert exc.reason == "bad_field" and "scale" in exc.detail, exc
+
+
+def test_a_bug_in_a_check_is_still_rejected_from_both_entry_points(monkeypatch):
+    import protocol.header
+
+    def broken(*args):
+        raise KeyError(list(range(10**6)))  # its str() alone would be megabytes
+
+    monkeypatch.setattr(protocol.header, "_check_kind", broken)
+    for entry in (codec.read_header, codec.decode):
+        exc = _reason(valid_frame(), entry)
+        assert exc.reason == "garbage" and exc.detail.startswith(codec.UNEXPECTED) and len(exc.detail) < 100, exc
