@@ -334,11 +334,12 @@ def similarity_problem(m: Any) -> str | None:
     if not np.array_equal(a[3], [0.0, 0.0, 0.0, 1.0]):
         return "last row must be 0 0 0 1"
     sr = a[:3, :3]
-    with np.errstate(all="ignore"):  # huge entries overflow to inf, refused just below
+    with np.errstate(all="ignore"):  # huge entries overflow to inf or NaN, refused below without a warning
         scale = float(np.cbrt(np.linalg.det(sr)))
-    if not 1e-6 < scale < 1e6:
-        return f"scale {scale:.3g} outside (1e-6, 1e6), or a reflection"
-    if np.abs(sr.T @ sr / scale**2 - np.eye(3)).max() > 1e-4:
+        if not 1e-6 < scale < 1e6:
+            return f"scale {scale:.3g} outside (1e-6, 1e6), or a reflection"
+        error = np.abs(sr.T @ sr / scale**2 - np.eye(3)).max()
+    if not error <= 1e-4:  # so that NaN is refused too
         return "not a scaled rotation"
     return None
 

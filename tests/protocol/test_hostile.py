@@ -171,13 +171,15 @@ def test_byte_buffers_that_cannot_be_read_as_bytes_are_garbage(entry):
 
 def test_field_box_with_huge_entries_is_bad_field_without_numpy_warnings():
     header, payload = split_frame(codec.encode(keyframe_summary_with_cameras()))
-    for diagonal in (1e308, 1e200, 1e-300):
-        box = np.diag([diagonal] * 3 + [1.0]).flatten().tolist()
+    off_diagonal = np.diag([0.5, 0.5, 0.5, 1.0])
+    off_diagonal[0, 1] = 1e200  # the scale is fine (0.5), the rotation check overflows
+    for box in [np.diag([d] * 3 + [1.0]) for d in (1e308, 1e200, 1e-300)] + [off_diagonal]:
+        box = box.flatten().tolist()
         data = codec.pack_frame(dict(header, meta={"image_bytes": 1, "box_from_shared": box}), payload)
         with warnings.catch_warnings():
             warnings.simplefilter("error")  # an overflow warning per hostile frame would flood the log
             exc = _reason(data, codec.read_header)
-        assert exc.reason == "bad_field" and "scale" in exc.detail, exc
+        assert exc.reason == "bad_field" and ("scale" in exc.detail or "rotation" in exc.detail), exc
 
 
 def test_a_bug_in_a_check_is_still_rejected_from_both_entry_points(monkeypatch):
