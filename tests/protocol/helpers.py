@@ -89,6 +89,43 @@ def split_frame(data: bytes) -> tuple[dict[str, Any], bytes]:
     return header, data[8 + header_length :]
 
 
+class Packed(bytes):
+    """A value already packed as msgpack: lets a forged map hold what msgpack.packb would not write."""
+
+
+def pack_map(fields: dict) -> bytes:
+    """A msgpack map of ``fields``, in order; :class:`Packed` values, at any depth, go in as they are."""
+    return _container_head(len(fields), 0x80, b"\xde", b"\xdf") + b"".join(
+        _pack(k) + _pack(v) for k, v in fields.items())
+
+
+def _pack(value: Any) -> bytes:
+    if isinstance(value, Packed):
+        return bytes(value)
+    if isinstance(value, dict):
+        return pack_map(value)
+    if isinstance(value, list) and any(isinstance(v, (Packed, list, dict)) for v in value):
+        return _container_head(len(value), 0x90, b"\xdc", b"\xdd") + b"".join(_pack(v) for v in value)
+    return msgpack.packb(value, use_bin_type=True)
+
+
+def _container_head(n: int, fix: int, head16: bytes, head32: bytes) -> bytes:
+    """msgpack's length prefix of an array or map: fixarray/fixmap, then 16- and 32-bit forms."""
+    if n < 16:
+        return bytes([fix | n])
+    return head16 + struct.pack(">H", n) if n < 2**16 else head32 + struct.pack(">I", n)
+
+
+def deep_list(depth: int) -> Packed:
+    """``[[[...[0]...]]]``, ``depth`` lists deep: msgpack unpacks up to 1024 levels."""
+    return Packed(b"\x91" * depth + b"\x00")
+
+
+def frame_of(packed_header: bytes, payload: bytes) -> bytes:
+    """Magic, length prefix, an already packed header and the payload."""
+    return codec.MAGIC + struct.pack("<I", len(packed_header)) + packed_header + payload
+
+
 def reframe(data: bytes, *, raw: bytes | None = None, payload: bytes | None = None, fix_checksum: bool = True,
             **changes: Any) -> bytes:
     """Rewrite a valid frame: new raw (re-compressed) or wire payload, changed header fields."""

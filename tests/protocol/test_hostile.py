@@ -6,7 +6,6 @@ would kill the callback) and ``decode``, which must give the real reason, not th
 
 from __future__ import annotations
 
-import struct
 import time
 import tracemalloc
 import warnings
@@ -20,8 +19,9 @@ from protocol import codec
 from protocol.expectation import MiB
 from protocol.messages import Rejected
 from protocol.untrusted import describe, nesting_depth
-from tests.protocol.helpers import (expectation, keyframe_summary, keyframe_summary_with_cameras, rle_zstd_frame,
-                                    split_frame, status_message, valid_frame)
+from tests.protocol.helpers import (Packed, deep_list, expectation, frame_of, keyframe_summary,
+                                    keyframe_summary_with_cameras, pack_map, rle_zstd_frame, split_frame,
+                                    status_message, valid_frame)
 
 
 def _reason(data: bytes, entry=codec.decode, **kw) -> Rejected:
@@ -45,29 +45,15 @@ def test_array_entry_with_an_unhashable_or_odd_dtype_is_bad_shape(entry, dtype):
     assert exc.reason == "bad_shape" and "malformed array entry" in exc.detail, exc
 
 
-def _packed_map(fields: dict, raw: dict[str, bytes]) -> bytes:
-    """A msgpack map of ``fields`` whose values named in ``raw`` are spliced in as pre-packed bytes."""
-    assert len(fields) < 16
-    out = bytearray([0x80 | len(fields)])
-    for k, v in fields.items():
-        out += msgpack.packb(k) + (raw[k] if k in raw else msgpack.packb(v, use_bin_type=True))
-    return bytes(out)
-
-
-def _deep_list(depth: int) -> bytes:
-    """``[[[...[0]...]]]`` nested ``depth`` lists: msgpack unpacks it (its own limit is 1024)."""
-    return b"\x91" * depth + b"\x00"
-
-
 @pytest.mark.parametrize("entry", [codec.read_header, codec.decode])
 @pytest.mark.parametrize("field", ["kind", "swarm", "sender", "round", "epoch", "signature", "wire_dtype",
                                    "compression", "raw_length", "checksum", "arrays", "meta"])
 def test_deeply_nested_header_value_is_bad_header(entry, field):
     header, payload = split_frame(valid_frame())
-    deep = _deep_list(1000) if field != "arrays" else b"\x91" + _deep_list(999)  # an entry nested 1000 deep
-    packed = _packed_map(header, {field: deep})
+    deep = deep_list(1000) if field != "arrays" else Packed(b"\x91" + deep_list(999))  # an entry 1000 deep
+    packed = pack_map(dict(header, **{field: deep}))
     assert len(msgpack.unpackb(packed)) == len(header)  # msgpack itself accepts it
-    data = b"DNRF" + struct.pack("<I", len(packed)) + packed + payload
+    data = frame_of(packed, payload)
     exc = _reason(data, entry)
     assert exc.reason == "bad_header" and "nested" in exc.detail, exc
 
@@ -105,7 +91,7 @@ def test_deeply_nested_status_body_is_bad_field():
     msg = codec.encode(status_message())
     header, payload = split_frame(msg)
     body = msgpack.unpackb(zstandard.ZstdDecompressor().decompress(payload))
-    raw = _packed_map(body, {"phase": _deep_list(1000)})
+    raw = pack_map(dict(body, phase=deep_list(1000)))
     frame = codec.pack_frame(dict(header, compression="none", raw_length=len(raw), payload_length=len(raw)), raw)
     exc = _reason(frame, codec.decode)
     assert exc.reason == "bad_field" and "nested" in exc.detail, exc
