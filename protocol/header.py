@@ -34,10 +34,8 @@ from protocol.messages import (
     is_number,
     similarity_problem,
 )
-from protocol.untrusted import describe, nesting_depth
+from protocol.untrusted import describe
 
-#: Deepest nesting a header of this schema has: header map > arrays > entry > shape list.
-MAX_HEADER_NESTING = 4
 
 
 @dataclass
@@ -124,7 +122,7 @@ def _header_map(view: memoryview, header_length: int, expect: Expectation) -> di
 
 
 def _check_schema_and_fields(h: dict[str, Any]) -> int:
-    """Schema first (another version may legitimately have other fields), the field set, its nesting."""
+    """Schema first (another version may legitimately have other fields), then the field set."""
     schema = h.get("schema")
     if not is_int(schema):
         raise Rejected("bad_header", "schema version missing or not an integer")
@@ -134,8 +132,6 @@ def _check_schema_and_fields(h: dict[str, Any]) -> int:
         missing = sorted(set(HEADER_FIELDS) - set(h))
         extra = sorted(describe(k) for k in set(h) - set(HEADER_FIELDS))[:4]
         raise Rejected("bad_header", f"missing {missing} unexpected {extra}")
-    if nesting_depth(h, MAX_HEADER_NESTING) > MAX_HEADER_NESTING:
-        raise Rejected("bad_header", f"header nested deeper than {MAX_HEADER_NESTING} levels")
     return schema
 
 

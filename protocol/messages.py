@@ -32,7 +32,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from protocol.untrusted import describe, nesting_depth
+from protocol.untrusted import describe
 
 #: Bumped whenever the header or a body changes incompatibly; peers on another version are refused.
 #: 2: Status.alignment is an :class:`Alignment` value, with its free text in alignment_detail.
@@ -47,9 +47,6 @@ KIND_KEYFRAMES = "keyframes"
 KEYFRAME_ARRAYS = ("descriptors", "points", "keyframe_index", "keypoints", "keyframe_cameras")  # wire order
 KEYFRAME_CAMERA_DIM = 16  # per keyframe: camera-to-world rows 0-2 (OpenGL, 12) + fx, fy, cx, cy
 KINDS = (KIND_THETA, KIND_STATUS, KIND_KEYFRAMES)
-
-#: Deepest nesting of a status body: body map > alive_ages list > [id, age] pair.
-MAX_STATUS_NESTING = 3
 
 WIRE_DTYPES = ("float32", "float16")
 COMPRESSIONS = ("zstd", "none")
@@ -354,7 +351,7 @@ def is_number(x: Any) -> bool:
 
 
 def _check_status_shape(body: Any) -> None:
-    """A map of exactly the body fields, nested no deeper than they are, before any field is read."""
+    """A map of exactly the body fields, before any field is read."""
     if not isinstance(body, dict):
         raise Rejected("bad_field", "status body is not a map")
     keys = set(body)
@@ -362,8 +359,6 @@ def _check_status_shape(body: Any) -> None:
     if keys != expected:
         missing, extra = sorted(expected - keys), sorted(describe(k) for k in keys - expected)[:4]
         raise Rejected("bad_field", f"status fields missing {missing} extra {extra}")
-    if nesting_depth(body, MAX_STATUS_NESTING) > MAX_STATUS_NESTING:
-        raise Rejected("bad_field", f"status body nested deeper than {MAX_STATUS_NESTING} levels")
 
 
 def check_status_body(body: Any) -> dict[str, Any]:

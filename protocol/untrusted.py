@@ -3,7 +3,11 @@
 ``str()`` of a hostile value is not safe in a refusal message: msgpack nests up to 1024 levels,
 deeper than Python's recursion limit for ``repr``, and a 1 MiB header can hold thousands of long
 strings, all formatted before any ``[:80]`` cuts them. :func:`describe` looks one level deep and
-bounds what it prints; :func:`nesting_depth` measures depth with an explicit stack. Pure Python.
+bounds what it prints.
+
+Nesting itself needs no check of its own: every field check tests a value's type before looking
+inside it, so a container where a scalar belongs is refused for that field's reason without
+being walked (a walk of every header would cost up to 4x msgpack's own unpacking). Pure Python.
 """
 
 from __future__ import annotations
@@ -38,27 +42,3 @@ def _describe_flat(value: Any, limit: int) -> str:
     if isinstance(value, dict):
         return f"map of {len(value)}"
     return type(value).__name__
-
-
-def nesting_depth(value: Any, limit: int) -> int:
-    """Container nesting of ``value`` (a scalar is 0, ``[1]`` is 1), counted up to ``limit + 1``.
-
-    Iterative, so any depth msgpack accepts is measured without recursion; stops early once the
-    limit is passed.
-    """
-    deepest = 0
-    stack = [(value, 0)]
-    while stack:
-        v, depth = stack.pop()
-        if isinstance(v, dict):
-            children = v.values()
-        elif isinstance(v, list):
-            children = v
-        else:
-            continue
-        depth += 1
-        deepest = max(deepest, depth)
-        if deepest > limit:
-            return deepest
-        stack.extend((child, depth) for child in children)
-    return deepest
