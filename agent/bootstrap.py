@@ -32,10 +32,20 @@ from agent.trainer import RobotTrainer
 from protocol import codec
 from protocol.keys import Keys
 from protocol.membership import Membership
-from protocol.messages import Alignment, KeyframeSummary, Rejected, Status
+from protocol.messages import KEYFRAME_CAMERA_DIM, Alignment, KeyframeSummary, Rejected, Status
 from protocol.network import Network
 
 __all__ = ["Bootstrap", "BootstrapTiming"]
+
+
+def _keyframe_cap(align: AlignConfig) -> int:
+    """Decompressed bytes a neighbour's summary may declare: the codec's cap, or our own budget if larger.
+
+    Every robot summarises under the same AlignConfig; its cameras (4 bytes x KEYFRAME_CAMERA_DIM
+    per keyframe) can come on top of ``max_bytes`` when the budget is smaller than they are.
+    """
+    budget = align.max_bytes + align.num_keyframes * KEYFRAME_CAMERA_DIM * 4
+    return max(codec.Expectation.max_keyframe_bytes, budget)
 
 
 @dataclass(frozen=True)
@@ -57,7 +67,8 @@ class Bootstrap:
         self.align, self.timing = align, timing
         self.box_pending = not box_known
         self._on_box = on_box  # the daemon rebuilds its model spec from the new box
-        self._peer_expect = codec.Expectation(swarm=keys.swarm, allowed_senders=frozenset(membership.topology.ids))
+        self._peer_expect = codec.Expectation(swarm=keys.swarm, allowed_senders=frozenset(membership.topology.ids),
+                                              max_keyframe_bytes=_keyframe_cap(align))
 
     # ------------------------------------------------------------------ the field box
     def adopt_box(self, box_from_shared: np.ndarray | Tensor, source: str) -> None:

@@ -32,6 +32,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from protocol.untrusted import describe
+
 #: Bumped whenever the header or a body changes incompatibly; peers on another version are refused.
 #: 2: Status.alignment is an :class:`Alignment` value, with its free text in alignment_detail.
 SCHEMA_VERSION = 2
@@ -329,10 +331,12 @@ def similarity_problem(m: Any) -> str | None:
     if not np.array_equal(a[3], [0.0, 0.0, 0.0, 1.0]):
         return "last row must be 0 0 0 1"
     sr = a[:3, :3]
-    scale = float(np.cbrt(np.linalg.det(sr)))
-    if not 1e-6 < scale < 1e6:
-        return f"scale {scale:.3g} outside (1e-6, 1e6), or a reflection"
-    if np.abs(sr.T @ sr / scale**2 - np.eye(3)).max() > 1e-4:
+    with np.errstate(all="ignore"):  # huge entries overflow to inf or NaN, refused below without a warning
+        scale = float(np.cbrt(np.linalg.det(sr)))
+        if not 1e-6 < scale < 1e6:
+            return f"scale {scale:.3g} outside (1e-6, 1e6), or a reflection"
+        error = np.abs(sr.T @ sr / scale**2 - np.eye(3)).max()
+    if not error <= 1e-4:  # so that NaN is refused too
         return "not a scaled rotation"
     return None
 
@@ -346,15 +350,20 @@ def is_number(x: Any) -> bool:
     return type(x) in (int, float)
 
 
-def check_status_body(body: Any) -> dict[str, Any]:
-    """Validate a decoded Status body (a dict from msgpack); raise Rejected('bad_field'|...)."""
+def _check_status_shape(body: Any) -> None:
+    """A map of exactly the body fields, before any field is read."""
     if not isinstance(body, dict):
         raise Rejected("bad_field", "status body is not a map")
     keys = set(body)
     expected = set(Status.BODY_FIELDS)
     if keys != expected:
-        missing, extra = sorted(expected - keys), sorted(map(str, keys - expected))
+        missing, extra = sorted(expected - keys), sorted(describe(k) for k in keys - expected)[:4]
         raise Rejected("bad_field", f"status fields missing {missing} extra {extra}")
+
+
+def check_status_body(body: Any) -> dict[str, Any]:
+    """Validate a decoded Status body (a dict from msgpack); raise Rejected('bad_field'|...)."""
+    _check_status_shape(body)
 
     def bad(name: str, what: str) -> Rejected:
         return Rejected("bad_field", f"status.{name}: {what}")

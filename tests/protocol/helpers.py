@@ -16,7 +16,7 @@ import zstandard
 
 from protocol import codec
 from protocol.keys import Keys
-from protocol.messages import ModelSpec, ThetaSnapshot
+from protocol.messages import Alignment, KeyframeSummary, ModelSpec, Status, ThetaSnapshot
 
 SWARM = "testswarm"
 SENDER = 1
@@ -50,11 +50,80 @@ def valid_frame(**kw: Any) -> bytes:
     return codec.encode(snapshot(**kw))
 
 
+def status_message(**kw: Any) -> Status:
+    """A valid Status (any field can be overridden)."""
+    fields = dict(swarm=SWARM, sender=2, round=7, epoch=3, reference=0, phase="train", loss=0.25, psnr=None,
+                  pose=[0.0, 0.1, -0.2, 0.3, 1.0, 2.0, -3.0], neighbours_heard=[1], bytes_in=1000, bytes_out=2000,
+                  rejected={"wrong_swarm": 2}, alignment=Alignment.IDENTITY, alignment_detail="", wall_time=12.5, seconds_compute=3.0,
+                  seconds_wait=0.5)
+    fields.update(kw)
+    return Status(**fields)
+
+
+def keyframe_summary(descriptor_dtype=np.uint8, points: int = 50) -> KeyframeSummary:
+    """A valid keyframe summary without keypoints or cameras."""
+    rng = np.random.default_rng(3)
+    if descriptor_dtype == np.uint8:
+        desc = rng.integers(0, 256, (points, 32), dtype=np.uint8)
+    else:
+        desc = rng.standard_normal((points, 128)).astype(np.float32)
+    return KeyframeSummary(SWARM, 1, 0, 0, desc, rng.standard_normal((points, 3)).astype(np.float32),
+                           rng.integers(0, 5, points).astype(np.int32), image_bytes=123456)
+
+
+def keyframe_summary_with_cameras(points: int = 50, keyframes: int = 5) -> KeyframeSummary:
+    """A valid keyframe summary with keypoints and keyframe cameras (positive focal lengths)."""
+    msg = keyframe_summary(points=points)
+    rng = np.random.default_rng(4)
+    msg.keypoints = rng.uniform(0, 100, (points, 2)).astype(np.float32)
+    cams = rng.standard_normal((keyframes, 16)).astype(np.float32)
+    cams[:, 12:14] = 90.0  # focal lengths
+    msg.keyframe_cameras = cams
+    return msg
+
+
 def split_frame(data: bytes) -> tuple[dict[str, Any], bytes]:
     """(header map, payload) of a frame, without validation."""
     (header_length,) = struct.unpack_from("<I", data, 4)
     header = msgpack.unpackb(data[8 : 8 + header_length], raw=False)
     return header, data[8 + header_length :]
+
+
+class Packed(bytes):
+    """A value already packed as msgpack: lets a forged map hold what msgpack.packb would not write."""
+
+
+def pack_map(fields: dict) -> bytes:
+    """A msgpack map of ``fields``, in order; :class:`Packed` values, at any depth, go in as they are."""
+    return _container_head(len(fields), 0x80, b"\xde", b"\xdf") + b"".join(
+        _pack(k) + _pack(v) for k, v in fields.items())
+
+
+def _pack(value: Any) -> bytes:
+    if isinstance(value, Packed):
+        return bytes(value)
+    if isinstance(value, dict):
+        return pack_map(value)
+    if isinstance(value, list) and any(isinstance(v, (Packed, list, dict)) for v in value):
+        return _container_head(len(value), 0x90, b"\xdc", b"\xdd") + b"".join(_pack(v) for v in value)
+    return msgpack.packb(value, use_bin_type=True)
+
+
+def _container_head(n: int, fix: int, head16: bytes, head32: bytes) -> bytes:
+    """msgpack's length prefix of an array or map: fixarray/fixmap, then 16- and 32-bit forms."""
+    if n < 16:
+        return bytes([fix | n])
+    return head16 + struct.pack(">H", n) if n < 2**16 else head32 + struct.pack(">I", n)
+
+
+def deep_list(depth: int) -> Packed:
+    """``[[[...[0]...]]]``, ``depth`` lists deep: msgpack unpacks up to 1024 levels."""
+    return Packed(b"\x91" * depth + b"\x00")
+
+
+def frame_of(packed_header: bytes, payload: bytes) -> bytes:
+    """Magic, length prefix, an already packed header and the payload."""
+    return codec.MAGIC + struct.pack("<I", len(packed_header)) + packed_header + payload
 
 
 def reframe(data: bytes, *, raw: bytes | None = None, payload: bytes | None = None, fix_checksum: bool = True,
