@@ -28,11 +28,10 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from agent.baseline import train_baseline  # noqa: E402
 from agent.consensus import ConsensusConfig  # noqa: E402
 from agent.data.loaders import load_views  # noqa: E402
 from agent.data.split import SplitConfig, split_views  # noqa: E402
-from agent.evaluation import EvalSet, evaluate_robot  # noqa: E402
+from agent.evaluation import EvalSet, evaluate_robot, train_baseline  # noqa: E402
 from agent.swarm import Simulation, SwarmTrainingConfig  # noqa: E402
 from agent.trainer import CoarseToFineConfig, DepthConfig, TrainConfig  # noqa: E402
 from cli.config import apply_overrides  # noqa: E402

@@ -4,7 +4,7 @@
     .venv/bin/python benchmarks/bench_nerf.py --quick         # a smoke run: checks it works, figures meaningless
 
 1. lego (``../shared/data/nerf_synthetic/lego``, its 100 training views) at 100x100, every 8th view
-   held out (indices 0, 8, ...: 13 views), trained by ``agent.baseline.train_baseline`` in three
+   held out (indices 0, 8, ...: 13 views), trained by ``agent.evaluation.train_baseline`` in three
    separate runs whose schedules end at 500, 1000 and 2000 steps (the lr decays relative to the end,
    so a 1000-step figure is not a snapshot of the 2000-step run). Seconds per step is the median over
    the run of each step's wall time, occupancy-grid updates included.
@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 
 import torch  # noqa: E402
 
-from agent.baseline import evaluate_heldout, holdout_indices, train_baseline  # noqa: E402
+from agent.evaluation import evaluate_heldout, holdout_indices, train_baseline  # noqa: E402
 from agent.data.loaders import load_views  # noqa: E402
 from agent.data.split import estimate_scene_box  # noqa: E402
 from agent.geometry import box_from_center  # noqa: E402

@@ -30,7 +30,7 @@ def baseline(
     """Train one model on all views (the paper's centralised baseline); report PSNR/SSIM on held-out views."""
     import torch
 
-    from agent.baseline import evaluate_heldout, train_baseline
+    from agent.evaluation import evaluate_heldout, train_baseline
     from agent.data.folder import write_png
     from agent.data.loaders import load_views
 

@@ -241,7 +241,7 @@ def _baselines(spec: ScenarioSpec, out: Path, evalset, echo) -> dict:
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    from agent.baseline import evaluate_heldout, train_baseline
+    from agent.evaluation import evaluate_heldout, train_baseline
     from agent.data.loaders import load_views
     from cli.scenario.spec import spec_to_dict
 
