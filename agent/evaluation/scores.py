@@ -7,6 +7,7 @@ held-out view's pose fitted to its image (:func:`fit_view_pose`), as pose-free N
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import torch
@@ -19,6 +20,8 @@ from agent.geometry import pose_error, sim3_inverse
 
 @dataclass
 class RobotEval:
+    """Per-view scores of one robot's field (see :func:`evaluate_robot`)."""
+
     robot_id: int
     psnr: list[float]  # per held-out view
     ssim: list[float]
@@ -145,3 +148,22 @@ def evaluate_robot(trainer, evalset: EvalSet, robot_id: int, with_ssim: bool = T
         psnr_true_intrinsics=true_k,
         psnr_own_views=own,
     )
+
+
+@dataclass
+class ImageScores:
+    """Mean PSNR/SSIM on all held-out views and on those only other robots saw (SSIM None: not computed)."""
+
+    psnr: float
+    ssim: float | None
+    psnr_others_only: float
+    ssim_others_only: float | None
+
+    @classmethod
+    def of(cls, ev: RobotEval, with_ssim: bool, **more):
+        """The means of ``ev``; ``more``: the fields a subclass adds."""
+        return cls(psnr=ev.psnr_all, ssim=ev.ssim_all if with_ssim else None, psnr_others_only=ev.psnr_others,
+                   ssim_others_only=ev.ssim_others if with_ssim else None, **more)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)

@@ -1,24 +1,17 @@
 """The report of one scenario run: what each robot achieved, round by round, against the truth.
 
-Per robot and per evaluated round k (from the daemon's ``rounds/<k>.pt`` snapshots, through
-``agent.checkpoint.load_for_eval``): PSNR/SSIM on the held-out views of the whole scene and on the
-held-out views only *other* robots saw (``agent.evaluation``), the pose error against
-``truth.json``, and the consensus disagreement ``||theta_i - mean|| / ||mean||`` among the robots
-that have a snapshot of that round. From telemetry: loss, bytes per link, seconds per step and
-waiting. From ``run.json``: the faults applied and when.
-
-With ``[baseline] enabled``, two points of comparison trained in this process after the run,
+The evaluation is ``agent.evaluation``'s: every robot's kept snapshots scored round by round
+(:func:`agent.evaluation.score_run`: PSNR/SSIM on the held-out views of the whole scene and on
+those only *other* robots saw, the pose error against ``truth.json``, the consensus
+disagreement), and with ``[baseline] enabled`` the points of comparison trained after the run
 with the same steps as each robot (``rounds * steps_per_round`` unless ``baseline.steps``):
-the centralised model on all robots' views with true poses, and each robot alone on its own
-views with its pose fixed to the truth (an upper bound for "alone": it gets the frame for free).
+the centralised model, and each robot alone (:func:`agent.evaluation.run_baselines`). Robots
+with images only have their SfM frames calibrated to the world first; the fit's residual is
+reported with the results, since it bounds how exactly they can be measured.
 
-Robots with images only (``split.images_only``) train in their own SfM frames: before anything
-is scored, each robot's frame is fitted to the world on its cameras
-(``agent.evaluation.calibrate_frame``), and the fit's residual is reported with the results,
-since it bounds how exactly they can be measured. "Alone" then gets the calibrated frame and
-the split's field box for free.
-
-Writes ``report.json``, ``report.md``, ``convergence.png`` and ``renders.png`` into the run folder.
+This module adds what the run recorded (telemetry: loss, bytes per link, seconds per step and
+waiting; ``run.json``: the faults applied and when) and writes ``report.json``, ``report.md``,
+``convergence.png`` and ``renders.png`` into the run folder.
 """
 
 from __future__ import annotations
@@ -26,22 +19,17 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import statistics
 import time
 from pathlib import Path
 from typing import Any, Callable
 
-from agent.checkpoint import RunFolder
-from agent.telemetry import read_telemetry
+from agent.evaluation import RunScores, ScoringOptions, SwarmRun, score_run
+from agent.metrics import finite_mean
+from agent.telemetry import RoundRecord, read_telemetry
 from cli.config import from_dict
 from cli.scenario.spec import ScenarioSpec
 
 __all__ = ["build_report", "load_run_spec"]
-
-
-def _mean(xs) -> float | None:
-    xs = [x for x in xs if x is not None and not (isinstance(x, float) and math.isnan(x))]
-    return statistics.fmean(xs) if xs else None
 
 
 def _nan_to_none(x: Any) -> Any:
@@ -64,176 +52,122 @@ def load_run_spec(out: Path) -> ScenarioSpec:
     return spec
 
 
-def _snapshot_rounds(run_dir: Path) -> list[int]:
-    return RunFolder(run_dir, create=False).snapshot_rounds()
+def swarm_run(out: Path, ids: list[int]) -> SwarmRun:
+    """A scenario's output folder as the evaluation sees it: the split in data/, robot i's run in robots/<i>/."""
+    return SwarmRun(out / "data", {i: out / "robots" / str(i) for i in ids})
 
 
 def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[str], None] = print) -> dict:
     """Evaluate a finished (or stopped) run in ``out`` and write the report files. Returns report.json's dict."""
     import torch
 
-    from agent.consensus import disagreement
-    from agent.checkpoint import load_for_eval
-    from agent.evaluation import EvalSet, evaluate_robot
-
     out = Path(out)
     spec = spec or load_run_spec(out)
-    run = json.loads((out / "run.json").read_text())
+    run_doc = json.loads((out / "run.json").read_text())
     torch.set_num_threads(spec.report.threads)
-    data_dir = out / "data"
-    evalset = EvalSet.from_dir(data_dir)
-    ids = spec.ids
     t0 = time.monotonic()
 
-    telemetry = {i: read_telemetry(out / "robots" / str(i) / "telemetry.jsonl") for i in ids}
-    snaps = {i: _snapshot_rounds(out / "robots" / str(i)) for i in ids}
-    notes: list[str] = []
-    if evalset.needs_calibration:
-        notes += _calibrate_frames(evalset, out, snaps, echo)
-    evaluable = {i for i in ids if evalset.has_frame(i)} if evalset.has_frame(evalset.reference_id) else set()
-    all_rounds = sorted({k for ks in snaps.values() for k in ks})
-    last = all_rounds[-1] if all_rounds else None
-    chosen = [k for k in all_rounds if k % spec.report.eval_every == 0 or k == last]
-    echo(f"[report] evaluating {len(chosen)} rounds x {len(ids)} robots on {len(evalset.views)} held-out views")
+    def log(msg: str) -> None:
+        echo(f"[report] {msg}")
 
-    per_round: dict[int, dict[int, dict]] = {i: {} for i in ids}
-    finals: dict[int, Any] = {}
-    for k in chosen:
-        thetas = {}
-        for i in ids:
-            if k not in snaps[i] or i not in evaluable:
-                continue
-            trainer = load_for_eval(out / "robots" / str(i), data_dir / f"robot{i}", round=k)
-            final = k == snaps[i][-1]
-            fit_steps = spec.report.fit_heldout_poses_steps if final else 0  # costly: the final model only
-            if fit_steps:
-                echo(f"[report] robot {i}: fitting each held-out view's pose to its image ({fit_steps} steps each)")
-            ev = evaluate_robot(trainer, evalset, i, with_ssim=spec.report.ssim, pose_fit_steps=fit_steps,
-                                compare_true_intrinsics=final, own_views_every=spec.report.own_views_every if final else 0)
-            per_round[i][k] = {
-                "psnr": ev.psnr_all, "ssim": ev.ssim_all if spec.report.ssim else None,
-                "psnr_others_only": ev.psnr_others, "ssim_others_only": ev.ssim_others if spec.report.ssim else None,
-                "rotation_error_deg": ev.pose.get("rotation_deg"), "translation_error": ev.pose.get("translation"),
-                "scale_error_rel": ev.pose.get("scale_rel"),
-            }
-            summary = ev.summary()
-            for extra in ("psnr_pose_fitted", "psnr_true_intrinsics", "psnr_own_views"):  # final round only
-                if extra in summary:
-                    per_round[i][k][extra] = summary[extra]
-            thetas[i] = [t for _, t in sorted(trainer.theta().items())]
-            if final:
-                finals[i] = trainer
-        if len(thetas) >= 2:
-            dis = disagreement(list(thetas.values()))
-            for i, d in zip(thetas, dis):
-                per_round[i][k]["disagreement"] = d
-        del thetas
-
-    # telemetry: loss, bytes, time per step ...
-    robots: dict[str, Any] = {}
-    links: dict[str, int] = {}
-    for i in ids:
-        recs = telemetry[i]
-        by_round: dict[int, dict] = {}
-        for r in recs:
-            by_round[r.round] = {
-                "loss": r.loss, "own_psnr": r.psnr, "heard": r.heard, "live_neighbours": r.live_neighbours,
-                "reference": r.reference, "bytes_in": {str(j): b for j, b in r.bytes_in.items()},
-                "bytes_out": r.bytes_out, "seconds_compute": r.seconds_compute, "seconds_wait": r.seconds_wait,
-                "seconds_per_step": r.seconds_per_step, "steps": r.steps, "time": r.time,
-            }
-            for sender, b in r.bytes_in.items():
-                key = f"{sender}->{i}"
-                links[key] = links.get(key, 0) + int(b)
-        rounds_doc = {}
-        for k in sorted(set(by_round) | set(per_round[i])):
-            rounds_doc[str(k)] = {**by_round.get(k, {}), **per_round[i].get(k, {})}
-        final_k = max(per_round[i]) if per_round[i] else None
-        sps = [r.seconds_per_step for r in recs]
-        robots[str(i)] = {
-            "rounds": rounds_doc,
-            "final_round": final_k,
-            "final": per_round[i].get(final_k, {}) if final_k is not None else {},
-            "seconds_per_step_mean": _mean(sps),
-            "seconds_compute_total": sum(r.seconds_compute for r in recs),
-            "seconds_wait_total": sum(r.seconds_wait for r in recs),
-            "bytes_out_total": sum(r.bytes_out for r in recs),
-            "rejected": recs[-1].rejected if recs else {},
-            "rounds_logged": len(recs),
-            "starts": run.get("robots", {}).get(str(i), {}).get("starts"),
-            "state": run.get("robots", {}).get(str(i), {}).get("state"),
-        }
-        if i in evalset.calibration:
-            robots[str(i)]["calibration"] = evalset.calibration[i].summary()
-
-    faults = [e for e in run.get("events", []) if e.get("event") == "fault"]
-    report: dict[str, Any] = {
-        "scenario": spec.name,
-        "description": spec.description,
-        "mode": run.get("mode"),
-        "ok": run.get("ok"),
-        "reason": run.get("reason"),
-        "seconds_run": run.get("seconds"),
-        "split": run.get("split"),
-        "dataset": spec.dataset,
-        "robots": robots,
-        "links_bytes": links,
-        "faults": faults,
-        "heldout_views": len(evalset.views),
-        # [fx, width] of the held-out views: the truth the robots' SfM focal lengths are compared with
-        "truth_focal_px": [float(evalset.views.intrinsics[0, 0]), evalset.views.width],
-        "notes": notes,
-    }
-    if spec.split.depth_prior == "scaled":
-        report["notes"].append("depth prior: the true depth with a random per-image scale/shift (synthetic)")
-
+    run = swarm_run(out, spec.ids)
+    telemetry = {i: read_telemetry(run.folder(i).telemetry) for i in spec.ids}
+    opts = ScoringOptions(every=spec.report.eval_every, with_ssim=spec.report.ssim,
+                          fit_pose_steps=spec.report.fit_heldout_poses_steps,
+                          own_views_every=spec.report.own_views_every)
+    scores = score_run(run, opts, log)
+    report = _report_doc(spec, run_doc, scores, telemetry)
     if spec.baseline.enabled:
-        report["baseline"] = _baselines(spec, out, evalset, echo)
-    report["summary"] = _summary(report, ids)
+        report["baseline"] = _baselines(spec, out, scores.evalset, echo)
+    report["summary"] = _summary(report, spec.ids)
     report["seconds_report"] = time.monotonic() - t0
 
-    _plots(report, ids, out / "convergence.png")
-    _render_sheet(finals, evalset, spec, out / "renders.png", report.get("baseline", {}).get("_trainer"))
+    _plots(report, spec.ids, out / "convergence.png")
+    _render_sheet(scores.finals, scores.evalset, spec, out / "renders.png", report.get("baseline", {}).get("_trainer"))
     report.get("baseline", {}).pop("_trainer", None)
     report = _nan_to_none(report)
     (out / "report.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
-    (out / "report.md").write_text(_markdown(report, spec, ids))
+    (out / "report.md").write_text(_markdown(report, spec, spec.ids))
     echo(f"[report] wrote {out / 'report.md'} ({report['seconds_report']:.0f} s)")
     return report
 
 
 # --------------------------------------------------------------------------------------------
-# Points of comparison
+# report.json
 # --------------------------------------------------------------------------------------------
 
 
-def _calibrate_frames(evalset, out: Path, snaps: dict[int, list[int]], echo) -> list[str]:
-    """Fit every images-only robot's SfM frame to the world; returns notes on those that could not be.
+def _report_doc(spec: ScenarioSpec, run_doc: dict, scores: RunScores, telemetry: dict[int, list[RoundRecord]]) -> dict:
+    """report.json but for the baselines and the summary."""
+    views = scores.evalset.views
+    notes = list(scores.notes)
+    if spec.split.depth_prior == "scaled":
+        notes.append("depth prior: the true depth with a random per-image scale/shift (synthetic)")
+    return {
+        "scenario": spec.name,
+        "description": spec.description,
+        "mode": run_doc.get("mode"),
+        "ok": run_doc.get("ok"),
+        "reason": run_doc.get("reason"),
+        "seconds_run": run_doc.get("seconds"),
+        "split": run_doc.get("split"),
+        "dataset": spec.dataset,
+        "robots": {str(i): _robot_doc(i, telemetry[i], scores, run_doc) for i in spec.ids},
+        "links_bytes": _links_bytes(telemetry),
+        "faults": [e for e in run_doc.get("events", []) if e.get("event") == "fault"],
+        "heldout_views": len(views),
+        # [fx, width] of the held-out views: the truth the robots' SfM focal lengths are compared with
+        "truth_focal_px": [float(views.intrinsics[0, 0]), views.width],
+        "notes": notes,
+    }
 
-    The cameras are those of the robot's trainer as ``load_for_eval`` rebuilds it, i.e. its SfM
-    frame exactly as it trained in, whatever the daemon did to the SfM's output.
-    """
-    from agent.checkpoint import load_for_eval
-    from agent.data.views import DataError
 
-    notes = ["images only: each robot's local frame is its own SfM; it is aligned to the world by a Sim(3) fit "
-             "of its camera centres to the true ones before scoring (see 'Evaluation frames')"]
-    for i in sorted(evalset.cameras_world):
-        if not snaps.get(i):
-            notes.append(f"robot {i}: no snapshot, so no SfM frame to calibrate: not evaluated")
-            continue
-        try:
-            trainer = load_for_eval(out / "robots" / str(i), out / "data" / f"robot{i}")
-            cal = evalset.calibrate(i, trainer.refined_views())  # its cameras as it refined them
-        except (DataError, OSError) as e:
-            notes.append(f"robot {i}: its SfM frame could not be calibrated ({e}): not evaluated")
-            continue
-        echo(f"[report] robot {i}: SfM frame calibrated on {cal.inliers}/{cal.matched} cameras, centre error "
-             f"{cal.centre_error_median:.4f}, rotation error {cal.rotation_error_median_deg:.3f} deg (medians)")
-    if not evalset.has_frame(evalset.reference_id):
-        notes.append(f"the reference (robot {evalset.reference_id}) has no calibrated frame, so the shared frame is "
-                     "unknown: no robot could be evaluated")
-    return notes
+def _robot_doc(i: int, recs: list[RoundRecord], scores: RunScores, run_doc: dict) -> dict:
+    """One robot: its rounds (telemetry and scores side by side), its final scores, its totals."""
+    by_round = {r.round: _telemetry_row(r) for r in recs}
+    scored = {k: s.to_dict() for k, s in scores.rounds[i].items()}
+    final = scores.final(i)
+    process = run_doc.get("robots", {}).get(str(i), {})
+    doc = {
+        "rounds": {str(k): {**by_round.get(k, {}), **scored.get(k, {})} for k in sorted(set(by_round) | set(scored))},
+        "final_round": scores.final_round(i),
+        "final": final.to_dict() if final is not None else {},
+        "seconds_per_step_mean": finite_mean(r.seconds_per_step for r in recs),
+        "seconds_compute_total": sum(r.seconds_compute for r in recs),
+        "seconds_wait_total": sum(r.seconds_wait for r in recs),
+        "bytes_out_total": sum(r.bytes_out for r in recs),
+        "rejected": recs[-1].rejected if recs else {},
+        "rounds_logged": len(recs),
+        "starts": process.get("starts"),
+        "state": process.get("state"),
+    }
+    if i in scores.evalset.calibration:
+        doc["calibration"] = scores.evalset.calibration[i].summary()
+    return doc
+
+
+def _telemetry_row(r: RoundRecord) -> dict:
+    return {
+        "loss": r.loss, "own_psnr": r.psnr, "heard": r.heard, "live_neighbours": r.live_neighbours,
+        "reference": r.reference, "bytes_in": {str(j): b for j, b in r.bytes_in.items()},
+        "bytes_out": r.bytes_out, "seconds_compute": r.seconds_compute, "seconds_wait": r.seconds_wait,
+        "seconds_per_step": r.seconds_per_step, "steps": r.steps, "time": r.time,
+    }
+
+
+def _links_bytes(telemetry: dict[int, list[RoundRecord]]) -> dict[str, int]:
+    """Bytes received over the whole run, per link ``"<sender>-><receiver>"``."""
+    links: dict[str, int] = {}
+    for i, recs in telemetry.items():
+        for r in recs:
+            for sender, b in r.bytes_in.items():
+                links[f"{sender}->{i}"] = links.get(f"{sender}->{i}", 0) + int(b)
+    return links
+
+
+# --------------------------------------------------------------------------------------------
+# Points of comparison
+# --------------------------------------------------------------------------------------------
 
 
 def _baselines(spec: ScenarioSpec, out: Path, evalset, echo) -> dict:
@@ -264,7 +198,7 @@ def _baselines(spec: ScenarioSpec, out: Path, evalset, echo) -> dict:
                                   cameras=dataclasses.replace(spec.training.train.cameras, enabled=False))
         run = train_baseline(views, cfg, spec.split.holdout_every)
         scores = evaluate_heldout(run, views, with_ssim=spec.report.ssim)
-        result["centralised"] = {"psnr": _mean(scores["psnr"]), "ssim": _mean(scores["ssim"]),
+        result["centralised"] = {"psnr": finite_mean(scores["psnr"]), "ssim": finite_mean(scores["ssim"]),
                                  "seconds": time.monotonic() - t, "views": len(scores["psnr"])}
         result["_trainer"] = run.trainer
         if futures:
@@ -328,8 +262,8 @@ def _train_alone(spec_data: dict, out: str, robot: int, steps: int) -> dict:
 def _summary(report: dict, ids: list[int]) -> dict:
     finals = {i: report["robots"][str(i)]["final"] for i in ids}
     s: dict[str, Any] = {
-        "mean_psnr": _mean(f.get("psnr") for f in finals.values()),
-        "mean_psnr_others_only": _mean(f.get("psnr_others_only") for f in finals.values()),
+        "mean_psnr": finite_mean(f.get("psnr") for f in finals.values()),
+        "mean_psnr_others_only": finite_mean(f.get("psnr_others_only") for f in finals.values()),
         "max_rotation_error_deg": max((f.get("rotation_error_deg") or 0.0 for f in finals.values()), default=None),
         "max_translation_error": max((f.get("translation_error") or 0.0 for f in finals.values()), default=None),
     }
