@@ -16,14 +16,13 @@ waiting; ``run.json``: the faults applied and when) and writes ``report.json``, 
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import time
 from pathlib import Path
 from typing import Any, Callable
 
-from agent.evaluation import RunScores, ScoringOptions, SwarmRun, score_run
+from agent.evaluation import Baselines, RunScores, ScoringOptions, SwarmRun, run_baselines, score_run, summarise
 from agent.metrics import finite_mean
 from agent.telemetry import RoundRecord, read_telemetry
 from cli.config import from_dict
@@ -77,19 +76,26 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
                           own_views_every=spec.report.own_views_every)
     scores = score_run(run, opts, log)
     report = _report_doc(spec, run_doc, scores, telemetry)
-    if spec.baseline.enabled:
-        report["baseline"] = _baselines(spec, out, scores.evalset, echo)
-    report["summary"] = _summary(report, spec.ids)
+    baselines = _baselines(spec, run, log) if spec.baseline.enabled else None
+    if baselines is not None:
+        report["baseline"] = baselines.to_dict()
+    report["summary"] = summarise(scores, baselines).to_dict()
     report["seconds_report"] = time.monotonic() - t0
 
     _plots(report, spec.ids, out / "convergence.png")
-    _render_sheet(scores.finals, scores.evalset, spec, out / "renders.png", report.get("baseline", {}).get("_trainer"))
-    report.get("baseline", {}).pop("_trainer", None)
+    _render_sheet(scores.finals, scores.evalset, spec, out / "renders.png",
+                  baselines.centralised.trainer if baselines is not None else None)
     report = _nan_to_none(report)
     (out / "report.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
     (out / "report.md").write_text(_markdown(report, spec, spec.ids))
     echo(f"[report] wrote {out / 'report.md'} ({report['seconds_report']:.0f} s)")
     return report
+
+
+def _baselines(spec: ScenarioSpec, run: SwarmRun, echo: Callable[[str], None]) -> Baselines:
+    return run_baselines(run, dataset=spec.resolved_dataset(), width=spec.width, training=spec.training,
+                         holdout_every=spec.split.holdout_every, steps=spec.baseline.steps or spec.training.total_steps,
+                         alone=spec.baseline.alone, with_ssim=spec.report.ssim, echo=echo)
 
 
 # --------------------------------------------------------------------------------------------
@@ -163,124 +169,6 @@ def _links_bytes(telemetry: dict[int, list[RoundRecord]]) -> dict[str, int]:
             for sender, b in r.bytes_in.items():
                 links[f"{sender}->{i}"] = links.get(f"{sender}->{i}", 0) + int(b)
     return links
-
-
-# --------------------------------------------------------------------------------------------
-# Points of comparison
-# --------------------------------------------------------------------------------------------
-
-
-def _baselines(spec: ScenarioSpec, out: Path, evalset, echo) -> dict:
-    """Centralised model here; the robots alone in 2 worker processes meanwhile (2 cores: ~half the wall time)."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    from agent.evaluation import evaluate_heldout, train_baseline
-    from agent.data.loaders import load_views
-    from cli.scenario.spec import spec_to_dict
-
-    steps = spec.baseline.steps or spec.training.total_steps
-    result: dict[str, Any] = {"steps": steps}
-    pool = None
-    futures = {}
-    if spec.baseline.alone:
-        echo(f"[report] baseline: robots {spec.ids} alone, {steps} steps each (2 worker processes)")
-        pool = ProcessPoolExecutor(max_workers=min(2, len(spec.ids)), mp_context=mp.get_context("spawn"))
-        data = spec_to_dict(spec)
-        futures = {i: pool.submit(_train_alone, data, str(out), i, steps) for i in spec.ids}
-    try:
-        t = time.monotonic()
-        echo(f"[report] baseline: centralised model, {steps} steps")
-        views = load_views(spec.resolved_dataset(), width=spec.width)
-        # true poses: the robots' camera refinement (for SfM cameras) has nothing to correct here
-        cfg = dataclasses.replace(spec.training.train, total_steps=steps, seed=spec.training.seed,
-                                  init_seed=spec.training.seed,
-                                  cameras=dataclasses.replace(spec.training.train.cameras, enabled=False))
-        run = train_baseline(views, cfg, spec.split.holdout_every)
-        scores = evaluate_heldout(run, views, with_ssim=spec.report.ssim)
-        result["centralised"] = {"psnr": finite_mean(scores["psnr"]), "ssim": finite_mean(scores["ssim"]),
-                                 "seconds": time.monotonic() - t, "views": len(scores["psnr"])}
-        result["_trainer"] = run.trainer
-        if futures:
-            result["alone"] = {}
-            for i, f in futures.items():
-                try:
-                    result["alone"][str(i)] = f.result()
-                except Exception as e:  # a baseline that fails must not take the swarm's report with it
-                    echo(f"[report] baseline: robot {i} alone failed: {type(e).__name__}: {e}")
-                    result["alone"][str(i)] = {"error": f"{type(e).__name__}: {e}"}
-    finally:
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
-    return result
-
-
-def _train_alone(spec_data: dict, out: str, robot: int, steps: int) -> dict:
-    """One robot alone on its own views, pose fixed to the truth (runs in a worker process).
-
-    Images only: the robot's SfM frame (and the reference's, which defines the shared frame) is
-    calibrated here on the views as this process loads them, so the truth fits those views.
-    """
-    import torch
-
-    from agent.data.folder import read_scene
-    from agent.data.loaders import load_views
-    from agent.evaluation import EvalSet, evaluate_robot
-    from agent.swarm import build_robot
-
-    fields = dict(spec_data)
-    fields.pop("path", None)
-    spec = from_dict(ScenarioSpec, fields)
-    torch.set_num_threads(1)
-    t = time.monotonic()
-    data = Path(out) / "data"
-    evalset = EvalSet.from_dir(data)
-    scene = read_scene(data)
-
-    def own_views(i: int):  # as the daemon loads them: training width, the run's SfM cache
-        return load_views(data / f"robot{i}", width=spec.training.image_width,
-                          sfm_cache_dir=Path(out) / "robots" / str(i) / "sfm")
-
-    views = own_views(robot)
-    if evalset.needs_calibration:
-        evalset.calibrate(robot, views)
-        if robot != evalset.reference_id:
-            evalset.calibrate(evalset.reference_id, own_views(evalset.reference_id))
-    box = scene.box_from_shared if scene.box_from_shared is not None else evalset.box_from_shared
-    tcfg = dataclasses.replace(spec.training, rounds=1, steps_per_round=steps)
-    setup = build_robot(robot, views, box, tcfg,
-                        initial_pose=evalset.T_shared_from_local(robot).float(),
-                        is_reference=True)  # is_reference: the pose stays frozen at the truth
-    setup.trainer.train(steps)
-    # its field is built in its own calibrated SfM frame, so it is seen through its own camera
-    ev = evaluate_robot(setup.trainer, evalset, robot, with_ssim=spec.report.ssim, camera_of=robot)
-    return {"psnr": ev.psnr_all, "ssim": ev.ssim_all if spec.report.ssim else None,
-            "psnr_others_only": ev.psnr_others, "ssim_others_only": ev.ssim_others if spec.report.ssim else None,
-            "seconds": time.monotonic() - t}
-
-
-def _summary(report: dict, ids: list[int]) -> dict:
-    finals = {i: report["robots"][str(i)]["final"] for i in ids}
-    s: dict[str, Any] = {
-        "mean_psnr": finite_mean(f.get("psnr") for f in finals.values()),
-        "mean_psnr_others_only": finite_mean(f.get("psnr_others_only") for f in finals.values()),
-        "max_rotation_error_deg": max((f.get("rotation_error_deg") or 0.0 for f in finals.values()), default=None),
-        "max_translation_error": max((f.get("translation_error") or 0.0 for f in finals.values()), default=None),
-    }
-    b = report.get("baseline")
-    if b:
-        s["centralised_psnr"] = b["centralised"]["psnr"]
-        if s["mean_psnr"] is not None:
-            s["gap_to_centralised_db"] = b["centralised"]["psnr"] - s["mean_psnr"]
-        if "alone" in b:
-            gains = {}
-            for i in ids:
-                sw, al = finals[i].get("psnr_others_only"), b["alone"][str(i)].get("psnr_others_only")
-                if sw is not None and al is not None and not math.isnan(sw) and not math.isnan(al):
-                    gains[str(i)] = sw - al
-            s["gain_over_alone_others_only_db"] = gains
-            s["min_gain_over_alone_others_only_db"] = min(gains.values()) if gains else None
-    return s
 
 
 # --------------------------------------------------------------------------------------------

@@ -19,9 +19,9 @@ from agent.data.folder import read_truth
 from agent.data.loaders import load_views
 from agent.data.split import split_views
 from agent.data.views import Views
-from agent.evaluation import EvalSet, calibrate_frames
+from agent.evaluation import AloneScores, EvalSet, calibrate_frames, train_alone
 from agent.geometry import random_rotation, sim3_inverse, transform_c2w
-from cli.config import ConfigError, to_dict
+from cli.config import ConfigError
 from cli.scenario import report as report_mod
 from cli.scenario.runner import prepare_split
 from cli.scenario.spec import find_scenario, load_scenario
@@ -177,10 +177,10 @@ def test_report_calibrates_frames_and_trains_alone_in_them(tmp_path, monkeypatch
     # "alone" for an images-only robot: its calibrated frame and the split's box, no traceback
     torch_threads = torch.get_num_threads()
     try:
-        res = report_mod._train_alone(to_dict(spec), str(out), 2, 3)
+        res = train_alone(run, 2, spec.training, 3, with_ssim=spec.report.ssim)
     finally:
         torch.set_num_threads(torch_threads)
-    assert "error" not in res and math.isfinite(res["psnr"])
+    assert isinstance(res, AloneScores) and math.isfinite(res.psnr)
 
 
 def test_markdown_shows_the_calibration_and_a_failed_baseline(tmp_path):
