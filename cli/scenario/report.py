@@ -265,7 +265,15 @@ def _f(x, fmt=".2f") -> str:
 
 
 def _markdown(report: dict, spec: ScenarioSpec, ids: list[int]) -> str:
-    s = report["summary"]
+    sections = (_md_header(report, spec), _md_finals(report, ids), _md_final_extras(report, spec, ids),
+                _md_calibration(report, ids), _md_comparison(report, spec, ids), _md_faults(report),
+                _md_links(report))
+    figures = ["## Convergence", "", "![convergence](convergence.png)", "", "## Renders (held-out views, shared frame)",
+               "", "![renders](renders.png)", ""]
+    return "\n".join([line for lines in sections for line in lines] + figures)
+
+
+def _md_header(report: dict, spec: ScenarioSpec) -> list[str]:
     lines = [f"# Scenario `{spec.name}`", ""]
     if spec.description:
         lines += [spec.description, ""]
@@ -285,11 +293,14 @@ def _markdown(report: dict, spec: ScenarioSpec, ids: list[int]) -> str:
         f"{spec.split.holdout_every}th); 'others only' = held-out views outside the robot's own sector",
         "",
     ]
-    for note in report.get("notes", []):
-        lines.append(f"- note: {note}")
-    lines += ["## Final state per robot", "",
-              "| robot | round | PSNR all | SSIM all | PSNR others-only | rot err (deg) | trans err | disagreement | s/step | wait (s) | MB out | starts |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    return lines + [f"- note: {note}" for note in report.get("notes", [])]
+
+
+def _md_finals(report: dict, ids: list[int]) -> list[str]:
+    s = report["summary"]
+    lines = ["## Final state per robot", "",
+             "| robot | round | PSNR all | SSIM all | PSNR others-only | rot err (deg) | trans err | disagreement | s/step | wait (s) | MB out | starts |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for i in ids:
         r = report["robots"][str(i)]
         f = r["final"]
@@ -299,75 +310,91 @@ def _markdown(report: dict, spec: ScenarioSpec, ids: list[int]) -> str:
             f"{_f(r['seconds_per_step_mean'], '.3f')} | {_f(r['seconds_wait_total'], '.1f')} | "
             f"{_f(r['bytes_out_total'] / 1e6, '.1f')} | {r['starts']} |"
         )
-    lines += ["", f"Mean PSNR {_f(s['mean_psnr'])} dB (others-only {_f(s['mean_psnr_others_only'])} dB); "
-              f"worst pose error {_f(s['max_rotation_error_deg'])} deg / {_f(s['max_translation_error'], '.3f')} (scene units).", ""]
-    fitted = {i: report["robots"][str(i)]["final"].get("psnr_pose_fitted") for i in ids}
-    if any(v is not None for v in fitted.values()):
-        lines += [f"With each held-out view's pose fitted to its image through the robot's frozen field "
+    return lines + ["", f"Mean PSNR {_f(s['mean_psnr'])} dB (others-only {_f(s['mean_psnr_others_only'])} dB); "
+                    f"worst pose error {_f(s['max_rotation_error_deg'])} deg / {_f(s['max_translation_error'], '.3f')} (scene units).", ""]
+
+
+def _md_final_extras(report: dict, spec: ScenarioSpec, ids: list[int]) -> list[str]:
+    """The final models' costlier scores, one sentence each, where they were computed."""
+
+    def per_robot(key: str, text: str) -> list[str]:
+        values = {i: report["robots"][str(i)]["final"].get(key) for i in ids}
+        if all(v is None for v in values.values()):
+            return []
+        return [text + ", ".join(f"robot {i} {_f(v)}" for i, v in values.items()) + " dB.", ""]
+
+    return (
+        per_robot("psnr_pose_fitted", f"With each held-out view's pose fitted to its image through the robot's frozen field "
                   f"({spec.report.fit_heldout_poses_steps} steps; the test-time pose optimisation of pose-free NeRF "
-                  f"evaluation): PSNR all " + ", ".join(f"robot {i} {_f(v)}" for i, v in fitted.items()) + " dB.", ""]
-    own = {i: report["robots"][str(i)]["final"].get("psnr_own_views") for i in ids}
-    if any(v is not None for v in own.values()):
-        lines += [f"Fit of each robot's own training views (one in {spec.report.own_views_every}, through its own "
-                  "cameras, as refined if it refines them; a shared field that cannot fit every robot's views, "
-                  "from cameras that disagree or a box that clips the scene, shows here first): PSNR "
-                  + ", ".join(f"robot {i} {_f(v)}" for i, v in own.items()) + " dB.", ""]
-    as_truth = {i: report["robots"][str(i)]["final"].get("psnr_true_intrinsics") for i in ids}
-    if any(v is not None for v in as_truth.values()):
-        lines += ["The held-out views are rendered through the shared frame's camera: the reference's focal length as "
-                  "its SfM found it and training refined it (see 'Evaluation frames'). With the truth's focal length "
-                  "instead, the views placed as above: PSNR all "
-                  + ", ".join(f"robot {i} {_f(v)}" for i, v in as_truth.items()) + " dB.", ""]
+                  f"evaluation): PSNR all ")
+        + per_robot("psnr_own_views", f"Fit of each robot's own training views (one in {spec.report.own_views_every}, "
+                    "through its own cameras, as refined if it refines them; a shared field that cannot fit every "
+                    "robot's views, from cameras that disagree or a box that clips the scene, shows here first): PSNR ")
+        + per_robot("psnr_true_intrinsics", "The held-out views are rendered through the shared frame's camera: the "
+                    "reference's focal length as its SfM found it and training refined it (see 'Evaluation frames'). "
+                    "With the truth's focal length instead, the views placed as above: PSNR all ")
+    )
+
+
+def _md_calibration(report: dict, ids: list[int]) -> list[str]:
     cals = {i: report["robots"][str(i)].get("calibration") for i in ids}
-    if any(cals.values()):
-        lines += ["## Evaluation frames (images only)", "",
-                  "Each robot's SfM frame is aligned to the world by a Sim(3) fit of its camera centres to the true ones "
-                  "(the standard evaluation of pose-free NeRF). The residuals bound how exactly the scores above can "
-                  "be measured: the held-out cameras are placed through the reference's fit, each pose error through two fits.",
-                  "",
-                  "| robot | cameras matched | used by the fit | centre error, median (scene units) | rotation error, median (deg) | scene units per SfM unit | focal length / truth's |",
-                  "|---|---|---|---|---|---|---|"]
-        truth_focal = report.get("truth_focal_px")
-        for i, c in cals.items():
-            if c:
-                ratio = (c["focal_px"] / truth_focal[0] * truth_focal[1] / c["width"]
-                         if truth_focal and c.get("focal_px") else None)
-                lines.append(f"| {i} | {c['matched']} | {c['inliers']} | {_f(c['centre_error_median'], '.4f')} | "
-                             f"{_f(c['rotation_error_median_deg'], '.3f')} | {_f(c['scale'], '.4g')} | {_f(ratio, '.4f')} |")
-            else:
-                lines.append(f"| {i} | n/a | n/a | n/a | n/a | n/a | n/a |")
-        lines.append("")
-    b = report.get("baseline")
-    if b:
-        lines += ["## Comparison (same steps per model)", "",
-                  f"Centralised model (all views, true poses, {b['steps']} steps): PSNR **{_f(b['centralised']['psnr'])}** dB, "
-                  f"SSIM {_f(b['centralised']['ssim'], '.3f')}; swarm mean {_f(s['mean_psnr'])} dB "
-                  f"(gap {_f(s.get('gap_to_centralised_db'))} dB).", ""]
-        if "alone" in b:
-            lines += ["| robot | swarm PSNR all | alone PSNR all | swarm others-only | alone others-only | gain others-only (dB) |",
-                      "|---|---|---|---|---|---|"]
-            for i in ids:
-                f, a = report["robots"][str(i)]["final"], b["alone"][str(i)]
-                gain = s.get("gain_over_alone_others_only_db", {}).get(str(i))
-                lines.append(f"| {i} | {_f(f.get('psnr'))} | {_f(a.get('psnr'))} | {_f(f.get('psnr_others_only'))} | "
-                             f"{_f(a.get('psnr_others_only'))} | {_f(gain)} |")
-            for i in ids:
-                if b["alone"][str(i)].get("error"):
-                    lines.append(f"- robot {i} alone failed: {b['alone'][str(i)]['error']}")
-            lines += ["", "'Alone' trains on the robot's own views only, with its pose fixed to the truth"
-                      + (" (images only: its calibrated SfM frame, and the split's field box)." if spec.split.images_only else "."), ""]
-    lines += ["## Faults applied", ""]
-    if report["faults"]:
-        lines += ["| time (s) | swarm round | fault | rounds done per robot |", "|---|---|---|---|"]
-        for e in report["faults"]:
-            lines.append(f"| {_f(e.get('time'), '.1f')} | {e.get('swarm_round')} | {e.get('description')} | {e.get('robot_rounds')} |")
-    else:
-        lines.append("none")
-    lines += ["", "## Bytes per link (received, whole run)", ""]
-    if report["links_bytes"]:
-        lines += ["| link | MB |", "|---|---|"] + [f"| {k} | {v / 1e6:.1f} |" for k, v in sorted(report["links_bytes"].items())]
-    else:
-        lines.append("none recorded")
-    lines += ["", "## Convergence", "", "![convergence](convergence.png)", "", "## Renders (held-out views, shared frame)", "",
-              "![renders](renders.png)", ""]
-    return "\n".join(lines)
+    if not any(cals.values()):
+        return []
+    lines = ["## Evaluation frames (images only)", "",
+             "Each robot's SfM frame is aligned to the world by a Sim(3) fit of its camera centres to the true ones "
+             "(the standard evaluation of pose-free NeRF). The residuals bound how exactly the scores above can "
+             "be measured: the held-out cameras are placed through the reference's fit, each pose error through two fits.",
+             "",
+             "| robot | cameras matched | used by the fit | centre error, median (scene units) | rotation error, median (deg) | scene units per SfM unit | focal length / truth's |",
+             "|---|---|---|---|---|---|---|"]
+    truth_focal = report.get("truth_focal_px")
+    for i, c in cals.items():
+        if c:
+            ratio = (c["focal_px"] / truth_focal[0] * truth_focal[1] / c["width"]
+                     if truth_focal and c.get("focal_px") else None)
+            lines.append(f"| {i} | {c['matched']} | {c['inliers']} | {_f(c['centre_error_median'], '.4f')} | "
+                         f"{_f(c['rotation_error_median_deg'], '.3f')} | {_f(c['scale'], '.4g')} | {_f(ratio, '.4f')} |")
+        else:
+            lines.append(f"| {i} | n/a | n/a | n/a | n/a | n/a | n/a |")
+    return lines + [""]
+
+
+def _md_comparison(report: dict, spec: ScenarioSpec, ids: list[int]) -> list[str]:
+    b, s = report.get("baseline"), report["summary"]
+    if not b:
+        return []
+    lines = ["## Comparison (same steps per model)", "",
+             f"Centralised model (all views, true poses, {b['steps']} steps): PSNR **{_f(b['centralised']['psnr'])}** dB, "
+             f"SSIM {_f(b['centralised']['ssim'], '.3f')}; swarm mean {_f(s['mean_psnr'])} dB "
+             f"(gap {_f(s.get('gap_to_centralised_db'))} dB).", ""]
+    if "alone" not in b:
+        return lines
+    lines += ["| robot | swarm PSNR all | alone PSNR all | swarm others-only | alone others-only | gain others-only (dB) |",
+              "|---|---|---|---|---|---|"]
+    for i in ids:
+        f, a = report["robots"][str(i)]["final"], b["alone"][str(i)]
+        gain = s.get("gain_over_alone_others_only_db", {}).get(str(i))
+        lines.append(f"| {i} | {_f(f.get('psnr'))} | {_f(a.get('psnr'))} | {_f(f.get('psnr_others_only'))} | "
+                     f"{_f(a.get('psnr_others_only'))} | {_f(gain)} |")
+    for i in ids:
+        if b["alone"][str(i)].get("error"):
+            lines.append(f"- robot {i} alone failed: {b['alone'][str(i)]['error']}")
+    return lines + ["", "'Alone' trains on the robot's own views only, with its pose fixed to the truth"
+                    + (" (images only: its calibrated SfM frame, and the split's field box)." if spec.split.images_only else "."), ""]
+
+
+def _md_faults(report: dict) -> list[str]:
+    lines = ["## Faults applied", ""]
+    if not report["faults"]:
+        return lines + ["none", ""]
+    lines += ["| time (s) | swarm round | fault | rounds done per robot |", "|---|---|---|---|"]
+    for e in report["faults"]:
+        lines.append(f"| {_f(e.get('time'), '.1f')} | {e.get('swarm_round')} | {e.get('description')} | {e.get('robot_rounds')} |")
+    return lines + [""]
+
+
+def _md_links(report: dict) -> list[str]:
+    lines = ["## Bytes per link (received, whole run)", ""]
+    if not report["links_bytes"]:
+        return lines + ["none recorded", ""]
+    return lines + ["| link | MB |", "|---|---|"] + [f"| {k} | {v / 1e6:.1f} |" for k, v in sorted(report["links_bytes"].items())] + [""]
