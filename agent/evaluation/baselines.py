@@ -86,6 +86,8 @@ def evaluate_heldout(run: BaselineRun, views: Views, with_ssim: bool = True) -> 
 
 @dataclass
 class CentralisedScores:
+    """The centralised model on the held-out views, in the world frame."""
+
     psnr: float | None  # mean over the held-out views
     ssim: float | None
     seconds: float
@@ -98,6 +100,8 @@ class CentralisedScores:
 
 @dataclass
 class AloneScores(ImageScores):
+    """One robot alone, scored as the swarm's robots are (shared frame, others-only views)."""
+
     seconds: float
 
 
@@ -113,7 +117,7 @@ class BaselineFailure:
 
 @dataclass
 class Baselines:
-    steps: int  # of every model, the swarm's robots' included
+    steps: int  # of each baseline model (the report gives it as many as each robot trained)
     centralised: CentralisedScores
     alone: dict[int, AloneScores | BaselineFailure] | None = None  # None: not asked for
 

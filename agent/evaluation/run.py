@@ -153,7 +153,8 @@ def _score_snapshot(trainer: RobotTrainer, evalset: EvalSet, robot_id: int, fina
     return RoundScores.of(ev, opts.with_ssim)
 
 
-def calibrate_frames(evalset: EvalSet, run: SwarmRun, snapshots: dict[int, list[int]], echo: Echo = silent) -> list[str]:
+def calibrate_frames(evalset: EvalSet, run: SwarmRun, snapshots: dict[int, list[int]],
+                     echo: Echo = silent) -> list[str]:
     """Fit every images-only robot's SfM frame to the world; returns notes on those that could not be.
 
     The cameras are those of the robot's trainer as ``load_for_eval`` rebuilds it, i.e. its SfM

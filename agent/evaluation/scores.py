@@ -65,6 +65,25 @@ class RobotEval:
         }
 
 
+@dataclass
+class ImageScores:
+    """Mean PSNR/SSIM on all held-out views and on those only other robots saw (SSIM None: not computed)."""
+
+    psnr: float
+    ssim: float | None
+    psnr_others_only: float
+    ssim_others_only: float | None
+
+    @classmethod
+    def of(cls, ev: RobotEval, with_ssim: bool, **more):
+        """The means of ``ev``; ``more``: the fields a subclass adds."""
+        return cls(psnr=ev.psnr_all, ssim=ev.ssim_all if with_ssim else None, psnr_others_only=ev.psnr_others,
+                   ssim_others_only=ev.ssim_others if with_ssim else None, **more)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
 def fit_view_pose(trainer, c2w: Tensor, intrinsics: Tensor, image: Tensor, steps: int,
                   rays_per_step: int = 2048, lr: float = 2e-3, seed: int = 0) -> Tensor:
     """A held-out camera's pose fitted to its image through the robot's frozen field.
@@ -149,21 +168,3 @@ def evaluate_robot(trainer, evalset: EvalSet, robot_id: int, with_ssim: bool = T
         psnr_own_views=own,
     )
 
-
-@dataclass
-class ImageScores:
-    """Mean PSNR/SSIM on all held-out views and on those only other robots saw (SSIM None: not computed)."""
-
-    psnr: float
-    ssim: float | None
-    psnr_others_only: float
-    ssim_others_only: float | None
-
-    @classmethod
-    def of(cls, ev: RobotEval, with_ssim: bool, **more):
-        """The means of ``ev``; ``more``: the fields a subclass adds."""
-        return cls(psnr=ev.psnr_all, ssim=ev.ssim_all if with_ssim else None, psnr_others_only=ev.psnr_others,
-                   ssim_others_only=ev.ssim_others if with_ssim else None, **more)
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)

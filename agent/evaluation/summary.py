@@ -7,7 +7,7 @@ its neighbours, which it cannot have learnt by itself.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 from agent.evaluation.baselines import AloneScores, Baselines
 from agent.evaluation.run import RunScores
@@ -42,8 +42,7 @@ class RunSummary:
     baselines: BaselineGaps | None = None
 
     def to_dict(self) -> dict:
-        doc = {"mean_psnr": self.mean_psnr, "mean_psnr_others_only": self.mean_psnr_others_only,
-               "max_rotation_error_deg": self.max_rotation_error_deg, "max_translation_error": self.max_translation_error}
+        doc = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "baselines"}
         return {**doc, **(self.baselines.to_dict() if self.baselines else {})}
 
 

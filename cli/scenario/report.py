@@ -88,7 +88,7 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
     report = _nan_to_none(report)
     (out / "report.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
     (out / "report.md").write_text(_markdown(report, spec, spec.ids))
-    echo(f"[report] wrote {out / 'report.md'} ({report['seconds_report']:.0f} s)")
+    log(f"wrote {out / 'report.md'} ({report['seconds_report']:.0f} s)")
     return report
 
 
@@ -397,4 +397,5 @@ def _md_links(report: dict) -> list[str]:
     lines = ["## Bytes per link (received, whole run)", ""]
     if not report["links_bytes"]:
         return lines + ["none recorded", ""]
-    return lines + ["| link | MB |", "|---|---|"] + [f"| {k} | {v / 1e6:.1f} |" for k, v in sorted(report["links_bytes"].items())] + [""]
+    rows = [f"| {k} | {v / 1e6:.1f} |" for k, v in sorted(report["links_bytes"].items())]
+    return lines + ["| link | MB |", "|---|---|"] + rows + [""]
