@@ -22,6 +22,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from agent.data.views import Views
 from agent.swarm import SwarmTrainingConfig, build_robot
 from agent.trainer import RobotTrainer
 
@@ -77,6 +78,12 @@ class RunFolder:
         """The rounds kept under ``rounds/`` (``daemon.keep_rounds``), in order."""
         return sorted(int(p.stem) for p in (self.path / ROUNDS).glob("*.pt") if p.stem.isdigit())
 
+    def load_views(self, data_dir: str | Path, width: int | None) -> Views:
+        """The robot's views as its daemon trains on them: at ``width``; images only: through this run's SfM."""
+        from agent.data.loaders import load_views
+
+        return load_views(data_dir, width=width, sfm_cache_dir=self.sfm_cache)
+
     def save(self, ck: RobotCheckpoint) -> None:
         _atomic_torch_save({"round": ck.round, "robot_id": ck.robot_id, "trainer": ck.trainer,
                             "elected": ck.elected, "training": ck.training,
@@ -104,14 +111,12 @@ class RunFolder:
 
 def load_for_eval(run_dir: str | Path, data_dir: str | Path, round: int | None = None) -> RobotTrainer:
     """Rebuild a robot's trainer from its run folder (final checkpoint or ``rounds/<k>.pt``)."""
-    from agent.data.loaders import load_views
-
     folder = RunFolder(run_dir, create=False)
     ck = folder.load()
     if ck is None:
         raise FileNotFoundError(f"{folder.checkpoint}: no checkpoint")
     training = ck.training
-    views = load_views(data_dir, width=training.image_width, sfm_cache_dir=folder.sfm_cache)  # images-only: the run's SfM
+    views = folder.load_views(data_dir, training.image_width)
     trainer = build_robot(ck.robot_id, views, ck.box_from_shared, training).trainer
     trainer.load_state_dict(ck.trainer)
     if round is not None:

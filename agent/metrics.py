@@ -1,8 +1,10 @@
-"""Image quality metrics used by every report (PSNR, SSIM), on images in [0, 1]."""
+"""Image quality metrics used by every report (PSNR, SSIM), on images in [0, 1], and their mean."""
 
 from __future__ import annotations
 
 import math
+import statistics
+from typing import Iterable
 
 import torch
 import torch.nn.functional as F
@@ -37,3 +39,9 @@ def ssim(pred: Tensor, target: Tensor, window: int = 11, sigma: float = 1.5) -> 
     sxy = blur(x * y) - mu_x * mu_y
     s = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
     return float(s.mean())
+
+
+def finite_mean(values: Iterable[float | None]) -> float | None:
+    """The mean of the values that are numbers (None and NaN skipped); None when none is."""
+    xs = [x for x in values if x is not None and not (isinstance(x, float) and math.isnan(x))]
+    return statistics.fmean(xs) if xs else None

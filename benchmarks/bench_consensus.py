@@ -28,11 +28,10 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from agent.baseline import train_baseline  # noqa: E402
 from agent.consensus import ConsensusConfig  # noqa: E402
 from agent.data.loaders import load_views  # noqa: E402
 from agent.data.split import SplitConfig, split_views  # noqa: E402
-from agent.evaluation import EvalSet, evaluate_robot  # noqa: E402
+from agent.evaluation import EvalSet, evaluate_robot, train_baseline  # noqa: E402
 from agent.swarm import Simulation, SwarmTrainingConfig  # noqa: E402
 from agent.trainer import CoarseToFineConfig, DepthConfig, TrainConfig  # noqa: E402
 from cli.config import apply_overrides  # noqa: E402
@@ -121,7 +120,7 @@ def main() -> None:
     if "baseline" in modes:
         t0 = time.time()
         all_train = [i for i in range(len(views)) if i not in set(known.eval_indices)]
-        run = train_baseline(views.subset(all_train), dataclasses.replace(train, total_steps=total), holdout_every=0)
+        run = train_baseline(views.subset(all_train), dataclasses.replace(train, total_steps=total), test_every=0)
         # Scored on the split's held-out views, in the world (= shared, for frame "world") frame.
         sc = score(run.trainer, ev_known, ids[0])
         results["baseline"] = {"all": sc, "seconds": time.time() - t0,

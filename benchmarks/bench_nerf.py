@@ -4,7 +4,7 @@
     .venv/bin/python benchmarks/bench_nerf.py --quick         # a smoke run: checks it works, figures meaningless
 
 1. lego (``../shared/data/nerf_synthetic/lego``, its 100 training views) at 100x100, every 8th view
-   held out (indices 0, 8, ...: 13 views), trained by ``agent.baseline.train_baseline`` in three
+   held out (indices 0, 8, ...: 13 views), trained by ``agent.evaluation.train_baseline`` in three
    separate runs whose schedules end at 500, 1000 and 2000 steps (the lr decays relative to the end,
    so a 1000-step figure is not a snapshot of the 2000-step run). Seconds per step is the median over
    the run of each step's wall time, occupancy-grid updates included.
@@ -33,7 +33,8 @@ sys.path.insert(0, str(ROOT))
 
 import torch  # noqa: E402
 
-from agent.baseline import evaluate_heldout, holdout_indices, train_baseline  # noqa: E402
+from agent.data.split import test_indices  # noqa: E402
+from agent.evaluation import evaluate_heldout, train_baseline  # noqa: E402
 from agent.data.loaders import load_views  # noqa: E402
 from agent.data.split import estimate_scene_box  # noqa: E402
 from agent.geometry import box_from_center  # noqa: E402
@@ -76,13 +77,13 @@ def verdict(ok: bool | None) -> str:
 
 def bench_lego(data: Path, width: int, steps_list: list[int], log2_table: int | None, rays: int | None) -> list[dict]:
     views = load_views(data, width=width)
-    test = holdout_indices(len(views), 8)
+    test = test_indices(len(views), 8)
     print(f"lego: {len(views)} views at {views.width}x{views.height}, {len(test)} held out (indices {test[:3]}...)",
           flush=True)
     rows = []
     for steps in steps_list:
         t0 = time.perf_counter()
-        run = train_baseline(views, make_config(steps, log2_table, rays), holdout_every=8)
+        run = train_baseline(views, make_config(steps, log2_table, rays), test_every=8)
         train_s = time.perf_counter() - t0
         scores = evaluate_heldout(run, views)
         row = {
@@ -102,7 +103,7 @@ def bench_lego(data: Path, width: int, steps_list: list[int], log2_table: int | 
 def bench_procedural(width: int, seconds: float, log2_table: int | None, rays: int | None,
                      grid: dict | None = None) -> dict:
     views = load_views(f"procedural:views=100,width={width}")
-    test = holdout_indices(len(views), 8)
+    test = test_indices(len(views), 8)
     train = [i for i in range(len(views)) if i not in set(test)]
     center, half, _ = estimate_scene_box(views)
     guess = 2000  # refitted below from the measured step rate

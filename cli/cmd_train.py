@@ -21,7 +21,7 @@ def baseline(
     out: Path = typer.Option(Path("runs/baseline"), "--out", help="Output folder."),
     steps: int = typer.Option(2000, help="Optimiser steps."),
     width: int = typer.Option(None, help="Downscale images to this width."),
-    holdout_every: int = typer.Option(8, help="Hold out views 0, k, 2k, ... for evaluation."),
+    test_every: int = typer.Option(8, help="Test views 0, k, 2k, ... are held out for evaluation; 0 = none."),
     config: Path = typer.Option(None, "--config", help="TOML file with a [train] table."),
     overrides: list[str] = typer.Option([], "--set", help=SET_HELP),
     threads: int = typer.Option(2, help="CPU threads for torch."),
@@ -30,7 +30,7 @@ def baseline(
     """Train one model on all views (the paper's centralised baseline); report PSNR/SSIM on held-out views."""
     import torch
 
-    from agent.baseline import evaluate_heldout, train_baseline
+    from agent.evaluation import evaluate_heldout, train_baseline
     from agent.data.folder import write_png
     from agent.data.loaders import load_views
 
@@ -41,7 +41,7 @@ def baseline(
     t0 = time.perf_counter()
     with progress_bar() as bar:
         task = bar.add_task("training", total=cfg.total_steps)
-        run = train_baseline(views, cfg, holdout_every, on_step=lambda i: bar.update(task, completed=i))
+        run = train_baseline(views, cfg, test_every, on_step=lambda i: bar.update(task, completed=i))
     train_seconds = time.perf_counter() - t0
     scores = evaluate_heldout(run, views)
     test_views = views.subset(run.test_indices)
@@ -60,7 +60,7 @@ def baseline(
         "steps": cfg.total_steps,
         "train_views": len(run.train_indices),
         "heldout_views": [views.names[i] for i in run.test_indices],
-        "heldout_rule": f"every {holdout_every}th view (indices 0, {holdout_every}, ...)",
+        "heldout_rule": f"every {test_every}th view (indices 0, {test_every}, ...)",
         "psnr": statistics.fmean(scores["psnr"]),
         "ssim": statistics.fmean(scores["ssim"]),
         "psnr_per_view": scores["psnr"],

@@ -68,6 +68,7 @@ __all__ = [
     "split_views",
     "test_indices",
     "write_split",
+    "robot_folder",
     "estimate_scene_box",
     "scene_center",
     "mean_up",
@@ -390,6 +391,11 @@ def _local_frame(cfg: SplitConfig, is_reference: bool, sub: Views, gen: torch.Ge
 # --------------------------------------------------------------------------------------------
 
 
+def robot_folder(split_dir: str | Path, robot_id: int) -> Path:
+    """Robot ``robot_id``'s views in a split written by :func:`write_split`."""
+    return Path(split_dir) / f"robot{robot_id}"
+
+
 def _owned_outputs(out: Path) -> list[Path]:
     return sorted(out.glob("robot*")) + [out / n for n in ("eval", "truth.json", "split.json", "scene.json")]
 
@@ -430,7 +436,7 @@ def _write_view_folders(result: SplitResult, out: Path) -> None:
     for rid, rob in result.robots.items():
         write_views_folder(
             rob.views,
-            out / f"robot{rid}",
+            robot_folder(out, rid),
             write_poses=not cfg.images_only,
             top_extra={
                 "dinerf": {
@@ -444,7 +450,7 @@ def _write_view_folders(result: SplitResult, out: Path) -> None:
         if cfg.calibrated_cameras:  # the camera's calibration, not a pose: what a robot knows of its camera
             from agent.data.sfm import write_camera_file
 
-            write_camera_file(out / f"robot{rid}", float(rob.views.intrinsics[:, 0].median()), rob.views.width)
+            write_camera_file(robot_folder(out, rid), float(rob.views.intrinsics[:, 0].median()), rob.views.width)
     if len(result.eval_indices):
         write_views_folder(
             result.eval_views,

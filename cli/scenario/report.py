@@ -1,47 +1,34 @@
 """The report of one scenario run: what each robot achieved, round by round, against the truth.
 
-Per robot and per evaluated round k (from the daemon's ``rounds/<k>.pt`` snapshots, through
-``agent.checkpoint.load_for_eval``): PSNR/SSIM on the held-out views of the whole scene and on the
-held-out views only *other* robots saw (``agent.evaluation``), the pose error against
-``truth.json``, and the consensus disagreement ``||theta_i - mean|| / ||mean||`` among the robots
-that have a snapshot of that round. From telemetry: loss, bytes per link, seconds per step and
-waiting. From ``run.json``: the faults applied and when.
-
-With ``[baseline] enabled``, two points of comparison trained in this process after the run,
+The evaluation is ``agent.evaluation``'s: every robot's kept snapshots scored round by round
+(:func:`agent.evaluation.score_run`: PSNR/SSIM on the held-out views of the whole scene and on
+those only *other* robots saw, the pose error against ``truth.json``, the consensus
+disagreement), and with ``[baseline] enabled`` the points of comparison trained after the run
 with the same steps as each robot (``rounds * steps_per_round`` unless ``baseline.steps``):
-the centralised model on all robots' views with true poses, and each robot alone on its own
-views with its pose fixed to the truth (an upper bound for "alone": it gets the frame for free).
+the centralised model, and each robot alone (:func:`agent.evaluation.run_baselines`). Robots
+with images only have their SfM frames calibrated to the world first; the fit's residual is
+reported with the results, since it bounds how exactly they can be measured.
 
-Robots with images only (``split.images_only``) train in their own SfM frames: before anything
-is scored, each robot's frame is fitted to the world on its cameras
-(``agent.evaluation.calibrate_frame``), and the fit's residual is reported with the results,
-since it bounds how exactly they can be measured. "Alone" then gets the calibrated frame and
-the split's field box for free.
-
-Writes ``report.json``, ``report.md``, ``convergence.png`` and ``renders.png`` into the run folder.
+This module adds what the run recorded (telemetry: loss, bytes per link, seconds per step and
+waiting; ``run.json``: the faults applied and when) and writes ``report.json``, ``report.md``,
+``convergence.png`` and ``renders.png`` into the run folder.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
-import statistics
 import time
 from pathlib import Path
 from typing import Any, Callable
 
-from agent.checkpoint import RunFolder
-from agent.telemetry import read_telemetry
+from agent.evaluation import Baselines, RunScores, ScoringOptions, SwarmRun, run_baselines, score_run, summarise
+from agent.metrics import finite_mean
+from agent.telemetry import RoundRecord, read_telemetry
 from cli.config import from_dict
 from cli.scenario.spec import ScenarioSpec
 
 __all__ = ["build_report", "load_run_spec"]
-
-
-def _mean(xs) -> float | None:
-    xs = [x for x in xs if x is not None and not (isinstance(x, float) and math.isnan(x))]
-    return statistics.fmean(xs) if xs else None
 
 
 def _nan_to_none(x: Any) -> Any:
@@ -64,289 +51,124 @@ def load_run_spec(out: Path) -> ScenarioSpec:
     return spec
 
 
-def _snapshot_rounds(run_dir: Path) -> list[int]:
-    return RunFolder(run_dir, create=False).snapshot_rounds()
+def swarm_run(out: Path, ids: list[int]) -> SwarmRun:
+    """A scenario's output folder as the evaluation sees it: the split in data/, robot i's run in robots/<i>/."""
+    return SwarmRun(out / "data", {i: out / "robots" / str(i) for i in ids})
 
 
 def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[str], None] = print) -> dict:
     """Evaluate a finished (or stopped) run in ``out`` and write the report files. Returns report.json's dict."""
     import torch
 
-    from agent.consensus import disagreement
-    from agent.checkpoint import load_for_eval
-    from agent.evaluation import EvalSet, evaluate_robot
-
     out = Path(out)
     spec = spec or load_run_spec(out)
-    run = json.loads((out / "run.json").read_text())
+    run_doc = json.loads((out / "run.json").read_text())
     torch.set_num_threads(spec.report.threads)
-    data_dir = out / "data"
-    evalset = EvalSet.from_dir(data_dir)
-    ids = spec.ids
     t0 = time.monotonic()
 
-    telemetry = {i: read_telemetry(out / "robots" / str(i) / "telemetry.jsonl") for i in ids}
-    snaps = {i: _snapshot_rounds(out / "robots" / str(i)) for i in ids}
-    notes: list[str] = []
-    if evalset.needs_calibration:
-        notes += _calibrate_frames(evalset, out, snaps, echo)
-    evaluable = {i for i in ids if evalset.has_frame(i)} if evalset.has_frame(evalset.reference_id) else set()
-    all_rounds = sorted({k for ks in snaps.values() for k in ks})
-    last = all_rounds[-1] if all_rounds else None
-    chosen = [k for k in all_rounds if k % spec.report.eval_every == 0 or k == last]
-    echo(f"[report] evaluating {len(chosen)} rounds x {len(ids)} robots on {len(evalset.views)} held-out views")
+    def log(msg: str) -> None:
+        echo(f"[report] {msg}")
 
-    per_round: dict[int, dict[int, dict]] = {i: {} for i in ids}
-    finals: dict[int, Any] = {}
-    for k in chosen:
-        thetas = {}
-        for i in ids:
-            if k not in snaps[i] or i not in evaluable:
-                continue
-            trainer = load_for_eval(out / "robots" / str(i), data_dir / f"robot{i}", round=k)
-            final = k == snaps[i][-1]
-            fit_steps = spec.report.fit_heldout_poses_steps if final else 0  # costly: the final model only
-            if fit_steps:
-                echo(f"[report] robot {i}: fitting each held-out view's pose to its image ({fit_steps} steps each)")
-            ev = evaluate_robot(trainer, evalset, i, with_ssim=spec.report.ssim, pose_fit_steps=fit_steps,
-                                compare_true_intrinsics=final, own_views_every=spec.report.own_views_every if final else 0)
-            per_round[i][k] = {
-                "psnr": ev.psnr_all, "ssim": ev.ssim_all if spec.report.ssim else None,
-                "psnr_others_only": ev.psnr_others, "ssim_others_only": ev.ssim_others if spec.report.ssim else None,
-                "rotation_error_deg": ev.pose.get("rotation_deg"), "translation_error": ev.pose.get("translation"),
-                "scale_error_rel": ev.pose.get("scale_rel"),
-            }
-            summary = ev.summary()
-            for extra in ("psnr_pose_fitted", "psnr_true_intrinsics", "psnr_own_views"):  # final round only
-                if extra in summary:
-                    per_round[i][k][extra] = summary[extra]
-            thetas[i] = [t for _, t in sorted(trainer.theta().items())]
-            if final:
-                finals[i] = trainer
-        if len(thetas) >= 2:
-            dis = disagreement(list(thetas.values()))
-            for i, d in zip(thetas, dis):
-                per_round[i][k]["disagreement"] = d
-        del thetas
-
-    # telemetry: loss, bytes, time per step ...
-    robots: dict[str, Any] = {}
-    links: dict[str, int] = {}
-    for i in ids:
-        recs = telemetry[i]
-        by_round: dict[int, dict] = {}
-        for r in recs:
-            by_round[r.round] = {
-                "loss": r.loss, "own_psnr": r.psnr, "heard": r.heard, "live_neighbours": r.live_neighbours,
-                "reference": r.reference, "bytes_in": {str(j): b for j, b in r.bytes_in.items()},
-                "bytes_out": r.bytes_out, "seconds_compute": r.seconds_compute, "seconds_wait": r.seconds_wait,
-                "seconds_per_step": r.seconds_per_step, "steps": r.steps, "time": r.time,
-            }
-            for sender, b in r.bytes_in.items():
-                key = f"{sender}->{i}"
-                links[key] = links.get(key, 0) + int(b)
-        rounds_doc = {}
-        for k in sorted(set(by_round) | set(per_round[i])):
-            rounds_doc[str(k)] = {**by_round.get(k, {}), **per_round[i].get(k, {})}
-        final_k = max(per_round[i]) if per_round[i] else None
-        sps = [r.seconds_per_step for r in recs]
-        robots[str(i)] = {
-            "rounds": rounds_doc,
-            "final_round": final_k,
-            "final": per_round[i].get(final_k, {}) if final_k is not None else {},
-            "seconds_per_step_mean": _mean(sps),
-            "seconds_compute_total": sum(r.seconds_compute for r in recs),
-            "seconds_wait_total": sum(r.seconds_wait for r in recs),
-            "bytes_out_total": sum(r.bytes_out for r in recs),
-            "rejected": recs[-1].rejected if recs else {},
-            "rounds_logged": len(recs),
-            "starts": run.get("robots", {}).get(str(i), {}).get("starts"),
-            "state": run.get("robots", {}).get(str(i), {}).get("state"),
-        }
-        if i in evalset.calibration:
-            robots[str(i)]["calibration"] = evalset.calibration[i].summary()
-
-    faults = [e for e in run.get("events", []) if e.get("event") == "fault"]
-    report: dict[str, Any] = {
-        "scenario": spec.name,
-        "description": spec.description,
-        "mode": run.get("mode"),
-        "ok": run.get("ok"),
-        "reason": run.get("reason"),
-        "seconds_run": run.get("seconds"),
-        "split": run.get("split"),
-        "dataset": spec.dataset,
-        "robots": robots,
-        "links_bytes": links,
-        "faults": faults,
-        "heldout_views": len(evalset.views),
-        # [fx, width] of the held-out views: the truth the robots' SfM focal lengths are compared with
-        "truth_focal_px": [float(evalset.views.intrinsics[0, 0]), evalset.views.width],
-        "notes": notes,
-    }
-    if spec.split.depth_prior == "scaled":
-        report["notes"].append("depth prior: the true depth with a random per-image scale/shift (synthetic)")
-
-    if spec.baseline.enabled:
-        report["baseline"] = _baselines(spec, out, evalset, echo)
-    report["summary"] = _summary(report, ids)
+    run = swarm_run(out, spec.ids)
+    telemetry = {i: read_telemetry(run.folder(i).telemetry) for i in spec.ids}
+    opts = ScoringOptions(every=spec.report.eval_every, with_ssim=spec.report.ssim,
+                          fit_pose_steps=spec.report.fit_heldout_poses_steps,
+                          own_views_every=spec.report.own_views_every)
+    scores = score_run(run, opts, log)
+    report = _report_doc(spec, run_doc, scores, telemetry)
+    baselines = _baselines(spec, run, log) if spec.baseline.enabled else None
+    if baselines is not None:
+        report["baseline"] = baselines.to_dict()
+    report["summary"] = summarise(scores, baselines).to_dict()
     report["seconds_report"] = time.monotonic() - t0
 
-    _plots(report, ids, out / "convergence.png")
-    _render_sheet(finals, evalset, spec, out / "renders.png", report.get("baseline", {}).get("_trainer"))
-    report.get("baseline", {}).pop("_trainer", None)
+    _plots(report, spec.ids, out / "convergence.png")
+    _render_sheet(scores.finals, scores.evalset, spec, out / "renders.png",
+                  baselines.centralised.trainer if baselines is not None else None)
     report = _nan_to_none(report)
     (out / "report.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
-    (out / "report.md").write_text(_markdown(report, spec, ids))
-    echo(f"[report] wrote {out / 'report.md'} ({report['seconds_report']:.0f} s)")
+    (out / "report.md").write_text(_markdown(report, spec, spec.ids))
+    log(f"wrote {out / 'report.md'} ({report['seconds_report']:.0f} s)")
     return report
 
 
+def _baselines(spec: ScenarioSpec, run: SwarmRun, echo: Callable[[str], None]) -> Baselines:
+    return run_baselines(run, dataset=spec.resolved_dataset(), width=spec.width, training=spec.training,
+                         test_every=spec.split.test_every, steps=spec.baseline.steps or spec.training.total_steps,
+                         alone=spec.baseline.alone, with_ssim=spec.report.ssim, echo=echo)
+
+
 # --------------------------------------------------------------------------------------------
-# Points of comparison
+# report.json
 # --------------------------------------------------------------------------------------------
 
 
-def _calibrate_frames(evalset, out: Path, snaps: dict[int, list[int]], echo) -> list[str]:
-    """Fit every images-only robot's SfM frame to the world; returns notes on those that could not be.
-
-    The cameras are those of the robot's trainer as ``load_for_eval`` rebuilds it, i.e. its SfM
-    frame exactly as it trained in, whatever the daemon did to the SfM's output.
-    """
-    from agent.checkpoint import load_for_eval
-    from agent.data.views import DataError
-
-    notes = ["images only: each robot's local frame is its own SfM; it is aligned to the world by a Sim(3) fit "
-             "of its camera centres to the true ones before scoring (see 'Evaluation frames')"]
-    for i in sorted(evalset.cameras_world):
-        if not snaps.get(i):
-            notes.append(f"robot {i}: no snapshot, so no SfM frame to calibrate: not evaluated")
-            continue
-        try:
-            trainer = load_for_eval(out / "robots" / str(i), out / "data" / f"robot{i}")
-            cal = evalset.calibrate(i, trainer.refined_views())  # its cameras as it refined them
-        except (DataError, OSError) as e:
-            notes.append(f"robot {i}: its SfM frame could not be calibrated ({e}): not evaluated")
-            continue
-        echo(f"[report] robot {i}: SfM frame calibrated on {cal.inliers}/{cal.matched} cameras, centre error "
-             f"{cal.centre_error_median:.4f}, rotation error {cal.rotation_error_median_deg:.3f} deg (medians)")
-    if not evalset.has_frame(evalset.reference_id):
-        notes.append(f"the reference (robot {evalset.reference_id}) has no calibrated frame, so the shared frame is "
-                     "unknown: no robot could be evaluated")
-    return notes
-
-
-def _baselines(spec: ScenarioSpec, out: Path, evalset, echo) -> dict:
-    """Centralised model here; the robots alone in 2 worker processes meanwhile (2 cores: ~half the wall time)."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    from agent.baseline import evaluate_heldout, train_baseline
-    from agent.data.loaders import load_views
-    from cli.scenario.spec import spec_to_dict
-
-    steps = spec.baseline.steps or spec.training.total_steps
-    result: dict[str, Any] = {"steps": steps}
-    pool = None
-    futures = {}
-    if spec.baseline.alone:
-        echo(f"[report] baseline: robots {spec.ids} alone, {steps} steps each (2 worker processes)")
-        pool = ProcessPoolExecutor(max_workers=min(2, len(spec.ids)), mp_context=mp.get_context("spawn"))
-        data = spec_to_dict(spec)
-        futures = {i: pool.submit(_train_alone, data, str(out), i, steps) for i in spec.ids}
-    try:
-        t = time.monotonic()
-        echo(f"[report] baseline: centralised model, {steps} steps")
-        views = load_views(spec.resolved_dataset(), width=spec.width)
-        # true poses: the robots' camera refinement (for SfM cameras) has nothing to correct here
-        cfg = dataclasses.replace(spec.training.train, total_steps=steps, seed=spec.training.seed,
-                                  init_seed=spec.training.seed,
-                                  cameras=dataclasses.replace(spec.training.train.cameras, enabled=False))
-        run = train_baseline(views, cfg, spec.split.test_every)
-        scores = evaluate_heldout(run, views, with_ssim=spec.report.ssim)
-        result["centralised"] = {"psnr": _mean(scores["psnr"]), "ssim": _mean(scores["ssim"]),
-                                 "seconds": time.monotonic() - t, "views": len(scores["psnr"])}
-        result["_trainer"] = run.trainer
-        if futures:
-            result["alone"] = {}
-            for i, f in futures.items():
-                try:
-                    result["alone"][str(i)] = f.result()
-                except Exception as e:  # a baseline that fails must not take the swarm's report with it
-                    echo(f"[report] baseline: robot {i} alone failed: {type(e).__name__}: {e}")
-                    result["alone"][str(i)] = {"error": f"{type(e).__name__}: {e}"}
-    finally:
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
-    return result
-
-
-def _train_alone(spec_data: dict, out: str, robot: int, steps: int) -> dict:
-    """One robot alone on its own views, pose fixed to the truth (runs in a worker process).
-
-    Images only: the robot's SfM frame (and the reference's, which defines the shared frame) is
-    calibrated here on the views as this process loads them, so the truth fits those views.
-    """
-    import torch
-
-    from agent.data.folder import read_scene
-    from agent.data.loaders import load_views
-    from agent.evaluation import EvalSet, evaluate_robot
-    from agent.swarm import build_robot
-
-    fields = dict(spec_data)
-    fields.pop("path", None)
-    spec = from_dict(ScenarioSpec, fields)
-    torch.set_num_threads(1)
-    t = time.monotonic()
-    data = Path(out) / "data"
-    evalset = EvalSet.from_dir(data)
-    scene = read_scene(data)
-
-    def own_views(i: int):  # as the daemon loads them: training width, the run's SfM cache
-        return load_views(data / f"robot{i}", width=spec.training.image_width,
-                          sfm_cache_dir=Path(out) / "robots" / str(i) / "sfm")
-
-    views = own_views(robot)
-    if evalset.needs_calibration:
-        evalset.calibrate(robot, views)
-        if robot != evalset.reference_id:
-            evalset.calibrate(evalset.reference_id, own_views(evalset.reference_id))
-    box = scene.box_from_shared if scene.box_from_shared is not None else evalset.box_from_shared
-    tcfg = dataclasses.replace(spec.training, rounds=1, steps_per_round=steps)
-    setup = build_robot(robot, views, box, tcfg,
-                        initial_pose=evalset.T_shared_from_local(robot).float(),
-                        is_reference=True)  # is_reference: the pose stays frozen at the truth
-    setup.trainer.train(steps)
-    # its field is built in its own calibrated SfM frame, so it is seen through its own camera
-    ev = evaluate_robot(setup.trainer, evalset, robot, with_ssim=spec.report.ssim, camera_of=robot)
-    return {"psnr": ev.psnr_all, "ssim": ev.ssim_all if spec.report.ssim else None,
-            "psnr_others_only": ev.psnr_others, "ssim_others_only": ev.ssim_others if spec.report.ssim else None,
-            "seconds": time.monotonic() - t}
-
-
-def _summary(report: dict, ids: list[int]) -> dict:
-    finals = {i: report["robots"][str(i)]["final"] for i in ids}
-    s: dict[str, Any] = {
-        "mean_psnr": _mean(f.get("psnr") for f in finals.values()),
-        "mean_psnr_others_only": _mean(f.get("psnr_others_only") for f in finals.values()),
-        "max_rotation_error_deg": max((f.get("rotation_error_deg") or 0.0 for f in finals.values()), default=None),
-        "max_translation_error": max((f.get("translation_error") or 0.0 for f in finals.values()), default=None),
+def _report_doc(spec: ScenarioSpec, run_doc: dict, scores: RunScores, telemetry: dict[int, list[RoundRecord]]) -> dict:
+    """report.json but for the baselines and the summary."""
+    views = scores.evalset.views
+    notes = list(scores.notes)
+    if spec.split.depth_prior == "scaled":
+        notes.append("depth prior: the true depth with a random per-image scale/shift (synthetic)")
+    return {
+        "scenario": spec.name,
+        "description": spec.description,
+        "mode": run_doc.get("mode"),
+        "ok": run_doc.get("ok"),
+        "reason": run_doc.get("reason"),
+        "seconds_run": run_doc.get("seconds"),
+        "split": run_doc.get("split"),
+        "dataset": spec.dataset,
+        "robots": {str(i): _robot_doc(i, telemetry[i], scores, run_doc) for i in spec.ids},
+        "links_bytes": _links_bytes(telemetry),
+        "faults": [e for e in run_doc.get("events", []) if e.get("event") == "fault"],
+        "heldout_views": len(views),
+        # [fx, width] of the held-out views: the truth the robots' SfM focal lengths are compared with
+        "truth_focal_px": [float(views.intrinsics[0, 0]), views.width],
+        "notes": notes,
     }
-    b = report.get("baseline")
-    if b:
-        s["centralised_psnr"] = b["centralised"]["psnr"]
-        if s["mean_psnr"] is not None:
-            s["gap_to_centralised_db"] = b["centralised"]["psnr"] - s["mean_psnr"]
-        if "alone" in b:
-            gains = {}
-            for i in ids:
-                sw, al = finals[i].get("psnr_others_only"), b["alone"][str(i)].get("psnr_others_only")
-                if sw is not None and al is not None and not math.isnan(sw) and not math.isnan(al):
-                    gains[str(i)] = sw - al
-            s["gain_over_alone_others_only_db"] = gains
-            s["min_gain_over_alone_others_only_db"] = min(gains.values()) if gains else None
-    return s
+
+
+def _robot_doc(i: int, recs: list[RoundRecord], scores: RunScores, run_doc: dict) -> dict:
+    """One robot: its rounds (telemetry and scores side by side), its final scores, its totals."""
+    by_round = {r.round: _telemetry_row(r) for r in recs}
+    scored = {k: s.to_dict() for k, s in scores.rounds[i].items()}
+    final = scores.final(i)
+    process = run_doc.get("robots", {}).get(str(i), {})
+    doc = {
+        "rounds": {str(k): {**by_round.get(k, {}), **scored.get(k, {})} for k in sorted(set(by_round) | set(scored))},
+        "final_round": scores.final_round(i),
+        "final": final.to_dict() if final is not None else {},
+        "seconds_per_step_mean": finite_mean(r.seconds_per_step for r in recs),
+        "seconds_compute_total": sum(r.seconds_compute for r in recs),
+        "seconds_wait_total": sum(r.seconds_wait for r in recs),
+        "bytes_out_total": sum(r.bytes_out for r in recs),
+        "rejected": recs[-1].rejected if recs else {},
+        "rounds_logged": len(recs),
+        "starts": process.get("starts"),
+        "state": process.get("state"),
+    }
+    if i in scores.evalset.calibration:
+        doc["calibration"] = scores.evalset.calibration[i].summary()
+    return doc
+
+
+def _telemetry_row(r: RoundRecord) -> dict:
+    return {
+        "loss": r.loss, "own_psnr": r.psnr, "heard": r.heard, "live_neighbours": r.live_neighbours,
+        "reference": r.reference, "bytes_in": {str(j): b for j, b in r.bytes_in.items()},
+        "bytes_out": r.bytes_out, "seconds_compute": r.seconds_compute, "seconds_wait": r.seconds_wait,
+        "seconds_per_step": r.seconds_per_step, "steps": r.steps, "time": r.time,
+    }
+
+
+def _links_bytes(telemetry: dict[int, list[RoundRecord]]) -> dict[str, int]:
+    """Bytes received over the whole run, per link ``"<sender>-><receiver>"``."""
+    links: dict[str, int] = {}
+    for i, recs in telemetry.items():
+        for r in recs:
+            for sender, b in r.bytes_in.items():
+                links[f"{sender}->{i}"] = links.get(f"{sender}->{i}", 0) + int(b)
+    return links
 
 
 # --------------------------------------------------------------------------------------------
@@ -443,7 +265,15 @@ def _f(x, fmt=".2f") -> str:
 
 
 def _markdown(report: dict, spec: ScenarioSpec, ids: list[int]) -> str:
-    s = report["summary"]
+    sections = (_md_header(report, spec), _md_finals(report, ids), _md_final_extras(report, spec, ids),
+                _md_calibration(report, ids), _md_comparison(report, spec, ids), _md_faults(report),
+                _md_links(report))
+    figures = ["## Convergence", "", "![convergence](convergence.png)", "", "## Renders (held-out views, shared frame)",
+               "", "![renders](renders.png)", ""]
+    return "\n".join([line for lines in sections for line in lines] + figures)
+
+
+def _md_header(report: dict, spec: ScenarioSpec) -> list[str]:
     lines = [f"# Scenario `{spec.name}`", ""]
     if spec.description:
         lines += [spec.description, ""]
@@ -463,11 +293,14 @@ def _markdown(report: dict, spec: ScenarioSpec, ids: list[int]) -> str:
         f"{spec.split.test_every}th); 'others only' = held-out views outside the robot's own sector",
         "",
     ]
-    for note in report.get("notes", []):
-        lines.append(f"- note: {note}")
-    lines += ["## Final state per robot", "",
-              "| robot | round | PSNR all | SSIM all | PSNR others-only | rot err (deg) | trans err | disagreement | s/step | wait (s) | MB out | starts |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    return lines + [f"- note: {note}" for note in report.get("notes", [])]
+
+
+def _md_finals(report: dict, ids: list[int]) -> list[str]:
+    s = report["summary"]
+    lines = ["## Final state per robot", "",
+             "| robot | round | PSNR all | SSIM all | PSNR others-only | rot err (deg) | trans err | disagreement | s/step | wait (s) | MB out | starts |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for i in ids:
         r = report["robots"][str(i)]
         f = r["final"]
@@ -477,75 +310,92 @@ def _markdown(report: dict, spec: ScenarioSpec, ids: list[int]) -> str:
             f"{_f(r['seconds_per_step_mean'], '.3f')} | {_f(r['seconds_wait_total'], '.1f')} | "
             f"{_f(r['bytes_out_total'] / 1e6, '.1f')} | {r['starts']} |"
         )
-    lines += ["", f"Mean PSNR {_f(s['mean_psnr'])} dB (others-only {_f(s['mean_psnr_others_only'])} dB); "
-              f"worst pose error {_f(s['max_rotation_error_deg'])} deg / {_f(s['max_translation_error'], '.3f')} (scene units).", ""]
-    fitted = {i: report["robots"][str(i)]["final"].get("psnr_pose_fitted") for i in ids}
-    if any(v is not None for v in fitted.values()):
-        lines += [f"With each held-out view's pose fitted to its image through the robot's frozen field "
+    return lines + ["", f"Mean PSNR {_f(s['mean_psnr'])} dB (others-only {_f(s['mean_psnr_others_only'])} dB); "
+                    f"worst pose error {_f(s['max_rotation_error_deg'])} deg / {_f(s['max_translation_error'], '.3f')} (scene units).", ""]
+
+
+def _md_final_extras(report: dict, spec: ScenarioSpec, ids: list[int]) -> list[str]:
+    """The final models' costlier scores, one sentence each, where they were computed."""
+
+    def per_robot(key: str, text: str) -> list[str]:
+        values = {i: report["robots"][str(i)]["final"].get(key) for i in ids}
+        if all(v is None for v in values.values()):
+            return []
+        return [text + ", ".join(f"robot {i} {_f(v)}" for i, v in values.items()) + " dB.", ""]
+
+    return (
+        per_robot("psnr_pose_fitted", f"With each held-out view's pose fitted to its image through the robot's frozen field "
                   f"({spec.report.fit_heldout_poses_steps} steps; the test-time pose optimisation of pose-free NeRF "
-                  f"evaluation): PSNR all " + ", ".join(f"robot {i} {_f(v)}" for i, v in fitted.items()) + " dB.", ""]
-    own = {i: report["robots"][str(i)]["final"].get("psnr_own_views") for i in ids}
-    if any(v is not None for v in own.values()):
-        lines += [f"Fit of each robot's own training views (one in {spec.report.own_views_every}, through its own "
-                  "cameras, as refined if it refines them; a shared field that cannot fit every robot's views, "
-                  "from cameras that disagree or a box that clips the scene, shows here first): PSNR "
-                  + ", ".join(f"robot {i} {_f(v)}" for i, v in own.items()) + " dB.", ""]
-    as_truth = {i: report["robots"][str(i)]["final"].get("psnr_true_intrinsics") for i in ids}
-    if any(v is not None for v in as_truth.values()):
-        lines += ["The held-out views are rendered through the shared frame's camera: the reference's focal length as "
-                  "its SfM found it and training refined it (see 'Evaluation frames'). With the truth's focal length "
-                  "instead, the views placed as above: PSNR all "
-                  + ", ".join(f"robot {i} {_f(v)}" for i, v in as_truth.items()) + " dB.", ""]
+                  f"evaluation): PSNR all ")
+        + per_robot("psnr_own_views", f"Fit of each robot's own training views (one in {spec.report.own_views_every}, "
+                    "through its own cameras, as refined if it refines them; a shared field that cannot fit every "
+                    "robot's views, from cameras that disagree or a box that clips the scene, shows here first): PSNR ")
+        + per_robot("psnr_true_intrinsics", "The held-out views are rendered through the shared frame's camera: the "
+                    "reference's focal length as its SfM found it and training refined it (see 'Evaluation frames'). "
+                    "With the truth's focal length instead, the views placed as above: PSNR all ")
+    )
+
+
+def _md_calibration(report: dict, ids: list[int]) -> list[str]:
     cals = {i: report["robots"][str(i)].get("calibration") for i in ids}
-    if any(cals.values()):
-        lines += ["## Evaluation frames (images only)", "",
-                  "Each robot's SfM frame is aligned to the world by a Sim(3) fit of its camera centres to the true ones "
-                  "(the standard evaluation of pose-free NeRF). The residuals bound how exactly the scores above can "
-                  "be measured: the held-out cameras are placed through the reference's fit, each pose error through two fits.",
-                  "",
-                  "| robot | cameras matched | used by the fit | centre error, median (scene units) | rotation error, median (deg) | scene units per SfM unit | focal length / truth's |",
-                  "|---|---|---|---|---|---|---|"]
-        truth_focal = report.get("truth_focal_px")
-        for i, c in cals.items():
-            if c:
-                ratio = (c["focal_px"] / truth_focal[0] * truth_focal[1] / c["width"]
-                         if truth_focal and c.get("focal_px") else None)
-                lines.append(f"| {i} | {c['matched']} | {c['inliers']} | {_f(c['centre_error_median'], '.4f')} | "
-                             f"{_f(c['rotation_error_median_deg'], '.3f')} | {_f(c['scale'], '.4g')} | {_f(ratio, '.4f')} |")
-            else:
-                lines.append(f"| {i} | n/a | n/a | n/a | n/a | n/a | n/a |")
-        lines.append("")
-    b = report.get("baseline")
-    if b:
-        lines += ["## Comparison (same steps per model)", "",
-                  f"Centralised model (all views, true poses, {b['steps']} steps): PSNR **{_f(b['centralised']['psnr'])}** dB, "
-                  f"SSIM {_f(b['centralised']['ssim'], '.3f')}; swarm mean {_f(s['mean_psnr'])} dB "
-                  f"(gap {_f(s.get('gap_to_centralised_db'))} dB).", ""]
-        if "alone" in b:
-            lines += ["| robot | swarm PSNR all | alone PSNR all | swarm others-only | alone others-only | gain others-only (dB) |",
-                      "|---|---|---|---|---|---|"]
-            for i in ids:
-                f, a = report["robots"][str(i)]["final"], b["alone"][str(i)]
-                gain = s.get("gain_over_alone_others_only_db", {}).get(str(i))
-                lines.append(f"| {i} | {_f(f.get('psnr'))} | {_f(a.get('psnr'))} | {_f(f.get('psnr_others_only'))} | "
-                             f"{_f(a.get('psnr_others_only'))} | {_f(gain)} |")
-            for i in ids:
-                if b["alone"][str(i)].get("error"):
-                    lines.append(f"- robot {i} alone failed: {b['alone'][str(i)]['error']}")
-            lines += ["", "'Alone' trains on the robot's own views only, with its pose fixed to the truth"
-                      + (" (images only: its calibrated SfM frame, and the split's field box)." if spec.split.images_only else "."), ""]
-    lines += ["## Faults applied", ""]
-    if report["faults"]:
-        lines += ["| time (s) | swarm round | fault | rounds done per robot |", "|---|---|---|---|"]
-        for e in report["faults"]:
-            lines.append(f"| {_f(e.get('time'), '.1f')} | {e.get('swarm_round')} | {e.get('description')} | {e.get('robot_rounds')} |")
-    else:
-        lines.append("none")
-    lines += ["", "## Bytes per link (received, whole run)", ""]
-    if report["links_bytes"]:
-        lines += ["| link | MB |", "|---|---|"] + [f"| {k} | {v / 1e6:.1f} |" for k, v in sorted(report["links_bytes"].items())]
-    else:
-        lines.append("none recorded")
-    lines += ["", "## Convergence", "", "![convergence](convergence.png)", "", "## Renders (held-out views, shared frame)", "",
-              "![renders](renders.png)", ""]
-    return "\n".join(lines)
+    if not any(cals.values()):
+        return []
+    lines = ["## Evaluation frames (images only)", "",
+             "Each robot's SfM frame is aligned to the world by a Sim(3) fit of its camera centres to the true ones "
+             "(the standard evaluation of pose-free NeRF). The residuals bound how exactly the scores above can "
+             "be measured: the held-out cameras are placed through the reference's fit, each pose error through two fits.",
+             "",
+             "| robot | cameras matched | used by the fit | centre error, median (scene units) | rotation error, median (deg) | scene units per SfM unit | focal length / truth's |",
+             "|---|---|---|---|---|---|---|"]
+    truth_focal = report.get("truth_focal_px")
+    for i, c in cals.items():
+        if c:
+            ratio = (c["focal_px"] / truth_focal[0] * truth_focal[1] / c["width"]
+                     if truth_focal and c.get("focal_px") else None)
+            lines.append(f"| {i} | {c['matched']} | {c['inliers']} | {_f(c['centre_error_median'], '.4f')} | "
+                         f"{_f(c['rotation_error_median_deg'], '.3f')} | {_f(c['scale'], '.4g')} | {_f(ratio, '.4f')} |")
+        else:
+            lines.append(f"| {i} | n/a | n/a | n/a | n/a | n/a | n/a |")
+    return lines + [""]
+
+
+def _md_comparison(report: dict, spec: ScenarioSpec, ids: list[int]) -> list[str]:
+    b, s = report.get("baseline"), report["summary"]
+    if not b:
+        return []
+    lines = ["## Comparison (same steps per model)", "",
+             f"Centralised model (all views, true poses, {b['steps']} steps): PSNR **{_f(b['centralised']['psnr'])}** dB, "
+             f"SSIM {_f(b['centralised']['ssim'], '.3f')}; swarm mean {_f(s['mean_psnr'])} dB "
+             f"(gap {_f(s.get('gap_to_centralised_db'))} dB).", ""]
+    if "alone" not in b:
+        return lines
+    lines += ["| robot | swarm PSNR all | alone PSNR all | swarm others-only | alone others-only | gain others-only (dB) |",
+              "|---|---|---|---|---|---|"]
+    for i in ids:
+        f, a = report["robots"][str(i)]["final"], b["alone"][str(i)]
+        gain = s.get("gain_over_alone_others_only_db", {}).get(str(i))
+        lines.append(f"| {i} | {_f(f.get('psnr'))} | {_f(a.get('psnr'))} | {_f(f.get('psnr_others_only'))} | "
+                     f"{_f(a.get('psnr_others_only'))} | {_f(gain)} |")
+    for i in ids:
+        if b["alone"][str(i)].get("error"):
+            lines.append(f"- robot {i} alone failed: {b['alone'][str(i)]['error']}")
+    return lines + ["", "'Alone' trains on the robot's own views only, with its pose fixed to the truth"
+                    + (" (images only: its calibrated SfM frame, and the split's field box)." if spec.split.images_only else "."), ""]
+
+
+def _md_faults(report: dict) -> list[str]:
+    lines = ["## Faults applied", ""]
+    if not report["faults"]:
+        return lines + ["none", ""]
+    lines += ["| time (s) | swarm round | fault | rounds done per robot |", "|---|---|---|---|"]
+    for e in report["faults"]:
+        lines.append(f"| {_f(e.get('time'), '.1f')} | {e.get('swarm_round')} | {e.get('description')} | {e.get('robot_rounds')} |")
+    return lines + [""]
+
+
+def _md_links(report: dict) -> list[str]:
+    lines = ["## Bytes per link (received, whole run)", ""]
+    if not report["links_bytes"]:
+        return lines + ["none recorded", ""]
+    rows = [f"| {k} | {v / 1e6:.1f} |" for k, v in sorted(report["links_bytes"].items())]
+    return lines + ["| link | MB |", "|---|---|"] + rows + [""]

@@ -1,5 +1,5 @@
 """Scenarios whose robots have images only: what the spec demands, the split at two widths, and the
-report's side (frames calibrated before scoring, "alone" in a calibrated frame, the markdown)."""
+evaluation's side (frames calibrated before scoring, "alone" in a calibrated frame), and the markdown."""
 
 from __future__ import annotations
 
@@ -16,13 +16,14 @@ import numpy as np
 import pytest
 import torch
 
+import agent.evaluation.run
 from agent.data.folder import read_truth
 from agent.data.loaders import load_views
 from agent.data.split import split_views
 from agent.data.views import Views
-from agent.evaluation import EvalSet
+from agent.evaluation import AloneScores, EvalSet, calibrate_frames, train_alone
 from agent.geometry import random_rotation, sim3_inverse, transform_c2w
-from cli.config import ConfigError, to_dict
+from cli.config import ConfigError
 from cli.scenario import report as report_mod
 from cli.scenario.runner import prepare_split
 from cli.scenario.spec import find_scenario, load_scenario
@@ -97,7 +98,7 @@ def test_shipped_images_only_scenario():
     s = load_scenario(find_scenario("lego-2-images-only"))
     assert s.split.images_only and s.split.robot_image_width == 400 and s.width == 100
     assert s.training.image_width == 100 and s.training.train.pose.mode == "sim3"
-    assert s.daemon["initial_pose"] == "coarse" and s.baseline.enabled
+    assert s.daemon.initial_pose == "coarse" and s.baseline.enabled
 
 
 def test_prepare_split_writes_robots_wide_and_eval_at_the_scenario_width(tmp_path):
@@ -161,29 +162,28 @@ def test_report_calibrates_frames_and_trains_alone_in_them(tmp_path, monkeypatch
     truth = json.loads((out / "data/truth.json").read_text())
     monkeypatch.setitem(sys.modules, "agent.data.sfm", _fake_sfm(truth))
 
-    # the report's calibration, on the cameras of the trainers load_for_eval rebuilds
-    import agent.checkpoint
-
+    # the evaluation's calibration, on the cameras of the trainers load_for_eval rebuilds
     def fake_load_for_eval(run_dir, data_dir, round=None):
         views = load_views(data_dir, width=24)
         return SimpleNamespace(views=views, refined_views=lambda: views)  # cameras as trained (no refinement)
 
-    monkeypatch.setattr(agent.checkpoint, "load_for_eval", fake_load_for_eval)
+    monkeypatch.setattr(agent.evaluation.run, "load_for_eval", fake_load_for_eval)
+    run = report_mod.swarm_run(out, spec.ids)
     evalset = EvalSet.from_dir(out / "data")
-    notes = report_mod._calibrate_frames(evalset, out, {1: [0], 2: []}, echo=lambda _: None)
+    notes = calibrate_frames(evalset, run, {1: [0], 2: []}, echo=lambda _: None)
     assert torch.allclose(evalset.T_world_from_local[1], sim3_inverse(SFM[1]), atol=1e-5)
     assert evalset.calibration[1].centre_error_median < 1e-5
     assert not evalset.has_frame(2) and any("robot 2: no snapshot" in n for n in notes)
-    notes = report_mod._calibrate_frames(EvalSet.from_dir(out / "data"), out, {1: [], 2: [0]}, echo=lambda _: None)
+    notes = calibrate_frames(EvalSet.from_dir(out / "data"), run, {1: [], 2: [0]}, echo=lambda _: None)
     assert any("the reference (robot 1) has no calibrated frame" in n for n in notes)
 
     # "alone" for an images-only robot: its calibrated frame and the split's box, no traceback
     torch_threads = torch.get_num_threads()
     try:
-        res = report_mod._train_alone(to_dict(spec), str(out), 2, 3)
+        res = train_alone(run, 2, spec.training, 3, with_ssim=spec.report.ssim)
     finally:
         torch.set_num_threads(torch_threads)
-    assert "error" not in res and math.isfinite(res["psnr"])
+    assert isinstance(res, AloneScores) and math.isfinite(res.psnr)
 
 
 def test_markdown_shows_the_calibration_and_a_failed_baseline(tmp_path):

@@ -1,0 +1,179 @@
+"""A finished swarm run scored round by round: every robot's kept snapshots on the held-out views.
+
+Per robot and per scored round k (``rounds/<k>.pt``, rebuilt by ``agent.checkpoint.load_for_eval``):
+PSNR/SSIM on all held-out views and on those only other robots saw, the pose error against the
+truth, and the consensus disagreement ``||theta_i - mean|| / ||mean||`` among the robots that
+have a snapshot of that round. A robot's final snapshot is also scored the costly ways (each
+held-out pose fitted to its image, the truth's intrinsics, its own training views).
+
+Robots with images only train in their own SfM frames: each frame is fitted to the world on the
+robot's cameras before anything is scored (:func:`calibrate_frames`); a robot whose frame cannot
+be fitted is not scored, and none is when the reference's cannot (it defines the shared frame).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from agent.checkpoint import RunFolder, load_for_eval
+from agent.consensus import disagreement
+from agent.data.split import robot_folder
+from agent.data.views import DataError
+from agent.evaluation.evalset import EvalSet
+from agent.evaluation.scores import ImageScores, RobotEval, evaluate_robot
+from agent.trainer import RobotTrainer
+
+__all__ = ["SwarmRun", "ScoringOptions", "RoundScores", "RunScores", "score_run", "calibrate_frames"]
+
+Echo = Callable[[str], None]
+
+
+def silent(_: str) -> None:
+    """The default ``echo`` of the evaluation: progress goes nowhere."""
+
+
+@dataclass(frozen=True)
+class SwarmRun:
+    """Where a swarm run is on disk: the split it trained on and each robot's run folder."""
+
+    split_dir: Path  # written by agent.data.split.write_split: robot<i>/, eval/, truth.json, scene.json
+    run_dirs: dict[int, Path]  # robot id -> its run folder (agent.checkpoint.RunFolder)
+
+    @property
+    def ids(self) -> list[int]:
+        return list(self.run_dirs)
+
+    def folder(self, robot_id: int) -> RunFolder:
+        return RunFolder(self.run_dirs[robot_id], create=False)
+
+    def data_dir(self, robot_id: int) -> Path:
+        return robot_folder(self.split_dir, robot_id)
+
+    def load(self, robot_id: int, round: int | None = None) -> RobotTrainer:
+        """The robot's trainer as it was after ``round`` (default: its last checkpoint)."""
+        return load_for_eval(self.run_dirs[robot_id], self.data_dir(robot_id), round=round)
+
+    def snapshot_rounds(self) -> dict[int, list[int]]:
+        return {i: self.folder(i).snapshot_rounds() for i in self.ids}
+
+
+@dataclass(frozen=True)
+class ScoringOptions:
+    """What is scored: the plain scores on every scored round, the costly ones on final snapshots only."""
+
+    every: int = 1  # score every k-th round's snapshot (and always the last round)
+    with_ssim: bool = True
+    fit_pose_steps: int = 0  # final snapshot: each held-out view's pose fitted to its image first (0 = off)
+    own_views_every: int = 0  # final snapshot: also every k-th own training view (0 = off)
+
+
+_FINAL_ONLY = ("psnr_pose_fitted", "psnr_true_intrinsics", "psnr_own_views", "disagreement")
+
+
+@dataclass
+class RoundScores(ImageScores):
+    """One robot's snapshot of one round against the truth."""
+
+    rotation_error_deg: float | None
+    translation_error: float | None  # scene units
+    scale_error_rel: float | None
+    psnr_pose_fitted: float | None = None  # this and the next two: final snapshot only, when asked
+    psnr_true_intrinsics: float | None = None
+    psnr_own_views: float | None = None
+    disagreement: float | None = None  # with >= 2 robots scored on this round
+
+    @classmethod
+    def of(cls, ev: RobotEval, with_ssim: bool, **more) -> "RoundScores":
+        extra = ev.summary()
+        return super().of(ev, with_ssim, rotation_error_deg=ev.pose.get("rotation_deg"),
+                          translation_error=ev.pose.get("translation"), scale_error_rel=ev.pose.get("scale_rel"),
+                          **{k: extra.get(k) for k in _FINAL_ONLY[:3]}, **more)
+
+    def to_dict(self) -> dict:
+        """As report.json has it: the final-only scores only where they were computed."""
+        return {k: v for k, v in super().to_dict().items() if v is not None or k not in _FINAL_ONLY}
+
+
+@dataclass
+class RunScores:
+    evalset: EvalSet  # images-only robots' frames calibrated
+    rounds: dict[int, dict[int, RoundScores]]  # robot -> round -> scores, rounds in order
+    finals: dict[int, RobotTrainer]  # robot -> the model of its final snapshot (when that round was scored)
+    notes: list[str]  # what could not be scored, and why
+
+    def final_round(self, robot_id: int) -> int | None:
+        return max(self.rounds[robot_id]) if self.rounds[robot_id] else None
+
+    def final(self, robot_id: int) -> RoundScores | None:
+        k = self.final_round(robot_id)
+        return None if k is None else self.rounds[robot_id][k]
+
+
+def rounds_to_score(snapshots: dict[int, list[int]], every: int) -> list[int]:
+    """Every ``every``-th round any robot kept, and the last one."""
+    rounds = sorted({k for ks in snapshots.values() for k in ks})
+    return [k for k in rounds if k % every == 0 or k == rounds[-1]]
+
+
+def score_run(run: SwarmRun, opts: ScoringOptions, echo: Echo = silent) -> RunScores:
+    """Score every robot's snapshot of every chosen round (see the module docstring)."""
+    evalset = EvalSet.from_dir(run.split_dir)
+    snaps = run.snapshot_rounds()
+    notes = calibrate_frames(evalset, run, snaps, echo) if evalset.needs_calibration else []
+    evaluable = {i for i in run.ids if evalset.has_frame(i)} if evalset.has_frame(evalset.reference_id) else set()
+    chosen = rounds_to_score(snaps, opts.every)
+    echo(f"evaluating {len(chosen)} rounds x {len(run.ids)} robots on {len(evalset.views)} held-out views")
+    scores = RunScores(evalset, {i: {} for i in run.ids}, {}, notes)
+    for k in chosen:
+        thetas = {}
+        for i in run.ids:
+            if k not in snaps[i] or i not in evaluable:
+                continue
+            trainer = run.load(i, round=k)
+            final = k == snaps[i][-1]
+            scores.rounds[i][k] = _score_snapshot(trainer, evalset, i, final, opts, echo)
+            thetas[i] = [t for _, t in sorted(trainer.theta().items())]
+            if final:
+                scores.finals[i] = trainer
+        if len(thetas) >= 2:
+            for i, d in zip(thetas, disagreement(list(thetas.values()))):
+                scores.rounds[i][k].disagreement = d
+    return scores
+
+
+def _score_snapshot(trainer: RobotTrainer, evalset: EvalSet, robot_id: int, final: bool, opts: ScoringOptions,
+                    echo: Echo) -> RoundScores:
+    fit_steps = opts.fit_pose_steps if final else 0  # costly: the final model only
+    if fit_steps:
+        echo(f"robot {robot_id}: fitting each held-out view's pose to its image ({fit_steps} steps each)")
+    ev = evaluate_robot(trainer, evalset, robot_id, with_ssim=opts.with_ssim, pose_fit_steps=fit_steps,
+                        compare_true_intrinsics=final, own_views_every=opts.own_views_every if final else 0)
+    return RoundScores.of(ev, opts.with_ssim)
+
+
+def calibrate_frames(evalset: EvalSet, run: SwarmRun, snapshots: dict[int, list[int]],
+                     echo: Echo = silent) -> list[str]:
+    """Fit every images-only robot's SfM frame to the world; returns notes on those that could not be.
+
+    The cameras are those of the robot's trainer as ``load_for_eval`` rebuilds it, i.e. its SfM
+    frame exactly as it trained in, whatever the daemon did to the SfM's output.
+    """
+    notes = ["images only: each robot's local frame is its own SfM; it is aligned to the world by a Sim(3) fit "
+             "of its camera centres to the true ones before scoring (see 'Evaluation frames')"]
+    for i in sorted(evalset.cameras_world):
+        if not snapshots.get(i):
+            notes.append(f"robot {i}: no snapshot, so no SfM frame to calibrate: not evaluated")
+            continue
+        try:
+            cal = evalset.calibrate(i, run.load(i).refined_views())  # its cameras as it refined them
+        except (DataError, OSError) as e:
+            notes.append(f"robot {i}: its SfM frame could not be calibrated ({e}): not evaluated")
+            continue
+        echo(f"robot {i}: SfM frame calibrated on {cal.inliers}/{cal.matched} cameras, centre error "
+             f"{cal.centre_error_median:.4f}, rotation error {cal.rotation_error_median_deg:.3f} deg (medians)")
+    if not evalset.has_frame(evalset.reference_id):
+        notes.append(f"the reference (robot {evalset.reference_id}) has no calibrated frame, so the shared frame is "
+                     "unknown: no robot could be evaluated")
+    return notes
