@@ -17,8 +17,9 @@ import torch
 from torch import Tensor
 
 from agent.data.procedural.objects import Box, Cylinder, Ellipsoid, Sphere, mix, soft
+from agent.data.procedural.room import ROOM
 
-__all__ = ["SCENE_BOX_WORLD", "OBJECTS", "BOUNDS", "shade", "scene_sdf", "surface_colour"]
+__all__ = ["SCENE_BOX_WORLD", "OBJECTS", "BOUNDS", "shade", "surfaces", "scene_sdf", "surface_colour"]
 
 # The field box of the scene in world coordinates (centre, half-size): everything lies inside.
 SCENE_BOX_WORLD = {"center": [0.0, 0.0, 0.0], "half_size": 1.0}
@@ -85,23 +86,33 @@ def shade(obj, p: np.ndarray) -> np.ndarray:
     return np.clip(obj.albedo(p) * (_AMBIENT + (1 - _AMBIENT) * lambert)[:, None], 0.0, 1.0)
 
 
-def scene_sdf(points: Tensor | np.ndarray) -> Tensor:
-    """Signed distance to the nearest object surface (negative inside).  points: [N, 3] -> [N].
+def surfaces(room: bool = False) -> tuple:
+    """What a ray can hit: the objects, and the room around them (:mod:`.room`) if ``room``."""
+    return OBJECTS + (ROOM,) if room else OBJECTS
 
-    Exact for the spheres, boxes and cylinder; the ellipsoid term has the right zero set only.
-    Useful for checks (a depth unprojected along its ray must land on a surface) and for
+
+def _signed_distances(p: np.ndarray, room: bool) -> np.ndarray:
+    """[N, K] signed distance to each surface, negative inside solid matter (beyond the room's walls)."""
+    return np.stack([-s.sdf(p) if s is ROOM else s.sdf(p) for s in surfaces(room)], -1)
+
+
+def scene_sdf(points: Tensor | np.ndarray, room: bool = False) -> Tensor:
+    """Signed distance to the nearest surface (negative inside matter).  points: [N, 3] -> [N].
+
+    Exact for the spheres, boxes, cylinder and room; the ellipsoid term has the right zero set
+    only. Useful for checks (a depth unprojected along its ray must land on a surface) and for
     ground-truth occupancy.
     """
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    return torch.from_numpy(np.stack([o.sdf(p) for o in OBJECTS], -1).min(-1))
+    return torch.from_numpy(_signed_distances(p, room).min(-1))
 
 
-def surface_colour(points: Tensor | np.ndarray) -> Tensor:
-    """Shaded colour of the object whose surface is nearest to each point.  [N, 3] -> [N, 3]."""
+def surface_colour(points: Tensor | np.ndarray, room: bool = False) -> Tensor:
+    """Shaded colour of the surface nearest to each point.  [N, 3] -> [N, 3]."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    which = np.abs(np.stack([o.sdf(p) for o in OBJECTS], -1)).argmin(-1)
+    which = np.abs(_signed_distances(p, room)).argmin(-1)
     out = np.zeros_like(p)
-    for k, obj in enumerate(OBJECTS):
+    for k, obj in enumerate(surfaces(room)):
         sel = which == k
         if sel.any():
             out[sel] = shade(obj, p[sel])
