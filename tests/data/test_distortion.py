@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import cv2
 import numpy as np
 import pytest
@@ -16,7 +18,9 @@ from agent.camera import (
     undistort,
     unproject_depth,
 )
+from agent.data.folder import write_views_folder
 from agent.data.procedural import ProceduralConfig, procedural_views, render_procedural, scene_sdf
+from agent.data.split import SplitConfig, split_views, write_split
 from agent.geometry import look_at
 
 LENS = (0.06, -0.02, 0.003, -0.002)  # k1, k2, p1, p2
@@ -95,3 +99,19 @@ def test_procedural_lens_views_carry_their_distortion():
     for i in range(len(v)):  # depth is along each pixel's true ray
         pts = unproject_depth(v.depth[i], v.intrinsics[i], v.c2w[i], cfg.distortion)
         assert float(scene_sdf(pts, room=True).abs().max()) < 1e-4
+
+
+def test_folders_carry_the_lens_in_nerfstudio_fields(tmp_path):
+    v = procedural_views(ProceduralConfig(num_views=12, width=16, height=12, k1=0.06, k2=0.01, p2=-0.001, room=True))
+    top = write_views_folder(v, tmp_path / "one")
+    assert json.loads((tmp_path / "one/transforms.json").read_text()) == top
+    assert top["camera_model"] == "OPENCV"
+    assert {k: top[k] for k in DISTORTION_KEYS} == {"k1": 0.06, "k2": 0.01, "p1": 0.0, "p2": -0.001}
+    assert {"fl_x", "fl_y", "cx", "cy", "w", "h"} <= set(top) and (top["w"], top["h"]) == (16, 12)
+    plain = write_views_folder(procedural_views(ProceduralConfig(num_views=2, width=8)), tmp_path / "plain")
+    assert plain["camera_model"] == "PINHOLE" and not set(DISTORTION_KEYS) & set(plain)
+    # every folder of a split records the lens of its images
+    write_split(split_views(v, SplitConfig(robots=2, test_every=4, frame="random")), tmp_path / "split")
+    for folder in ("robot1", "robot2", "eval"):
+        spec = json.loads((tmp_path / "split" / folder / "transforms.json").read_text())
+        assert spec["camera_model"] == "OPENCV" and spec["k1"] == 0.06 and spec["p2"] == -0.001, folder
