@@ -7,10 +7,11 @@ from typing import Literal
 
 from agent.data.views import DataError
 
-__all__ = ["SplitConfig", "FrameKind", "DepthPrior"]
+__all__ = ["SplitConfig", "FrameKind", "DepthPrior", "SplitBy"]
 
 FrameKind = Literal["first_camera", "offset", "world", "random"]
 DepthPrior = Literal["none", "true", "scaled"]
+SplitBy = Literal["sector", "trajectory"]
 
 
 @dataclass
@@ -19,6 +20,7 @@ class SplitConfig:
 
     robots: int = 2
     ids: list[int] | None = None  # robot ids, default 1..robots; the reference is the lowest
+    by: SplitBy = "sector"  # sectors of azimuth (circle or arc), or segments of the capture order
     overlap: float = 0.0  # requested mean fraction of a robot's views shared with a neighbour, [0, 0.4]
     test_every: int = 8  # every k-th view (0, k, 2k, ...) is a test view, seen by no robot; 0 = none
     frame: FrameKind = "first_camera"
@@ -32,7 +34,7 @@ class SplitConfig:
     depth_shift_range: tuple[float, float] = (-0.5, 0.5)  # b_m of the "scaled" prior
     up: tuple[float, float, float] | None = None
     center: tuple[float, float, float] | None = None
-    sector_start_deg: float = 0.0
+    sector_start_deg: float = 0.0  # where robot 1's sector begins, when the cameras surround the scene
     images_only: bool = False  # robot folders without poses (robots must run their own SfM)
     calibrated_cameras: bool = False  # images_only: each robot folder also gets its camera's focal length
     # Robot folders get their images at this width (e.g. for their own SfM, which needs more
@@ -50,7 +52,7 @@ class SplitConfig:
             raise DataError(f"overlap must be in [0, 0.4], got {self.overlap}")
         if self.test_every < 0 or self.test_every == 1:
             raise DataError(f"test_every must be 0 (none) or >= 2, got {self.test_every}")
-        for name, allowed in (("frame", FrameKind), ("depth_prior", DepthPrior)):
+        for name, allowed in (("by", SplitBy), ("frame", FrameKind), ("depth_prior", DepthPrior)):
             if getattr(self, name) not in allowed.__args__:
                 raise DataError(f"{name} must be one of {list(allowed.__args__)}, got {getattr(self, name)!r}")
         if self.random_max_scale < 1.0:

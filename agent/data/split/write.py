@@ -126,7 +126,9 @@ def _split_record(result: SplitResult) -> dict:
         "config": dataclasses.asdict(cfg),
         "center": result.center.tolist(),
         "up": result.up.tolist(),
+        "layout": result.layout,
         "sector_margin_deg": result.margin_deg,
+        "segment_margin_views": result.margin_views,
         "target_overlap": cfg.overlap,
         "mean_overlap": result.mean_overlap,
         "robots": {
