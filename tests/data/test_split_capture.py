@@ -31,7 +31,9 @@ def test_sectors_over_an_arc_give_each_robot_its_share(arc):
     for idx, seen in zip(r.eval_indices, r.seen_by):  # seen_by: the sector the test view lies in
         assert seen == [rid for rid, rob in r.robots.items() if _in(float(r.azimuth_deg[idx]), rob.sector_deg)]
         assert len(seen) == 1
-    three = split_views(arc, SplitConfig(robots=3, test_every=8))
+    assert any("arc of" in n for n in r.notes)
+    three = split_views(arc, SplitConfig(robots=3, test_every=8, sector_start_deg=20.0))
+    assert any("sector_start_deg (20.0) ignored" in n for n in three.notes)
     assert sorted(len(rob.indices) for rob in three.robots.values()) in ([17, 17, 18], [17, 18, 17])
 
 

@@ -6,6 +6,7 @@ for the views of a dataset.
 
 - :mod:`.objects`: the analytic shapes (intersection, SDF, normal, albedo);
 - :mod:`.scene`: the objects in the box ``[-1, 1]^3``, their textures and shading;
+- :mod:`.room`: walls, floor and ceiling around them, for captures with a background;
 - :mod:`.render`: exact, anti-aliased rendering for any camera (colour, alpha, z-depth);
 - :mod:`.config`: :class:`ProceduralConfig` and the cameras it describes;
 - :mod:`.dataset`: :func:`procedural_views`, the dataset ``procedural:...`` loads.

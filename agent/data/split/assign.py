@@ -4,7 +4,7 @@ that gives the overlap asked for (definitions in :mod:`agent.data.split`)."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -31,6 +31,7 @@ class Assignment:
     ranges_deg: list[tuple[float, float]]  # [N] widened sectors, or the azimuths each segment spans
     margin_deg: float = 0.0  # sectors: delta
     margin_views: int = 0  # trajectory: views shared at each border between segments
+    notes: list[str] = field(default_factory=list)
 
 
 def assign(views: Views, cfg: SplitConfig, train_idx: list[int], test_idx: list[int], n: int) -> Assignment:
@@ -41,12 +42,19 @@ def assign(views: Views, cfg: SplitConfig, train_idx: list[int], test_idx: list[
     az_all = azimuths_deg(views.c2w, center, up)
     az = az_all.numpy()
     if cfg.by == "trajectory":
-        return _by_trajectory(views, cfg, train_idx, test_idx, n, center, up, az_all)
-    layout, starts, widths = _sector_layout(az[train_idx], cfg.sector_start_deg, n)
-    delta = _choose_margin(az[train_idx], starts, widths, cfg.overlap)
-    ranges = [(float(s - delta), float(s + w + delta)) for s, w in zip(starts, widths)]
-    return Assignment(layout, center, up, az_all, membership(az[train_idx], starts, widths, delta),
-                      membership(az[test_idx], starts, widths, delta), ranges, margin_deg=delta)
+        got = _by_trajectory(views, cfg, train_idx, test_idx, n, center, up, az_all)
+    else:
+        layout, starts, widths = _sector_layout(az[train_idx], cfg.sector_start_deg, n)
+        delta = _choose_margin(az[train_idx], starts, widths, cfg.overlap)
+        ranges = [(float(s - delta), float(s + w + delta)) for s, w in zip(starts, widths)]
+        got = Assignment(layout, center, up, az_all, membership(az[train_idx], starts, widths, delta),
+                         membership(az[test_idx], starts, widths, delta), ranges, margin_deg=delta)
+    if got.layout == "arc":
+        got.notes.append(f"the training cameras cover an arc of {360.0 - largest_gap(az[train_idx])[0]:.0f} deg of "
+                         "azimuth: sectors cut at its quantiles")
+    if got.layout != "circle" and cfg.sector_start_deg != 0.0:
+        got.notes.append(f"sector_start_deg ({cfg.sector_start_deg}) ignored: it places sectors round a full circle")
+    return got
 
 
 # --------------------------------------------------------------------------------------------

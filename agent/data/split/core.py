@@ -103,7 +103,7 @@ def split_views(views: Views, cfg: SplitConfig | None = None) -> SplitResult:
         idx = [train_idx[j] for j in np.nonzero(got.train[:, k])[0]]
         robots[rid] = _robot_split(views, cfg, rid, rid == reference, idx, gen, got.ranges_deg[k], float(achieved[k]))
     box_c, box_h, box_src = estimate_scene_box(views)
-    notes: list[str] = []
+    notes = list(got.notes)
     if box_src != "dataset":
         notes.append(f"scene box estimated from the {box_src}: centre {box_c.tolist()}, half-size {box_h:.3f}")
     return SplitResult(
