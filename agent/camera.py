@@ -8,6 +8,10 @@
   (COLMAP's keypoints follow the same rule). OpenCV keypoints (SIFT) put the centre of pixel i at
   i, i.e. at our pixel coordinate minus 0.5.
 - Depth is z-depth along the optical axis, 0 where unknown.
+- Lens distortion is OpenCV's radial-tangential model (COLMAP's and nerfstudio's ``OPENCV``),
+  coefficients ``(k1, k2, p1, p2)`` applied to normalised image coordinates ``((u - cx) / fx,
+  (v - cy) / fy)`` with y *down* as in OpenCV (the tangential terms change sign with y). The
+  0.5 pixel offset between OpenCV's pixel coordinates and ours cancels in these differences.
 
 Functions that take pixel positions work on numpy arrays and torch tensors alike, so that the
 numpy code (alignment, the procedural renderer) and the torch code (rays, depth) share one
@@ -35,6 +39,10 @@ __all__ = [
     "pixel_to_opencv",
     "optical_axis",
     "camera_directions",
+    "DISTORTION_KEYS",
+    "distortion_coeffs",
+    "distort",
+    "undistort",
     "project_points",
     "focal_from_fov",
     "fov_from_focal",
@@ -77,21 +85,70 @@ def optical_axis(c2w):
     return -c2w[..., :3, 2]
 
 
-def camera_directions(intrinsics, u, v):
+def camera_directions(intrinsics, u, v, distortion: tuple[float, float, float, float] | None = None):
     """Directions through pixel positions in the camera frame, scaled to z = -1 (not unit length).
 
     intrinsics: [..., 4] (fx, fy, cx, cy), u, v: pixel coordinates broadcastable with
     ``intrinsics[..., 0]`` -> [..., 3]. Image rows go down, camera +Y up. Since z = -1, a z-depth
-    times the direction is the camera-frame point.
+    times the direction is the camera-frame point. ``distortion`` (k1, k2, p1, p2): the pixels
+    are where a distorting lens put them, and the directions are the rays they came along.
     """
     fx, fy, cx, cy = (intrinsics[..., i] for i in range(4))
     x = (u - cx) / fx
-    y = -(v - cy) / fy
+    if distortion is None:
+        y = -(v - cy) / fy
+    else:
+        x, y_down = undistort(x, (v - cy) / fy, distortion)
+        y = -y_down
     if isinstance(x, Tensor):
         x, y = torch.broadcast_tensors(x, y)
         return torch.stack([x, y, -torch.ones_like(x)], -1)
     x, y = np.broadcast_arrays(x, y)
     return np.stack([x, y, -np.ones_like(x)], -1)
+
+
+# nerfstudio's names of the OPENCV model's coefficients, in OpenCV's order (cv2's distCoeffs)
+DISTORTION_KEYS = ("k1", "k2", "p1", "p2")
+
+
+def distortion_coeffs(fields: dict | None) -> tuple[float, float, float, float] | None:
+    """``{k1, k2, p1, p2}`` (missing keys are 0) -> the tuple, or None for a pinhole lens (all 0)."""
+    coeffs = tuple(float((fields or {}).get(k, 0.0)) for k in DISTORTION_KEYS)
+    return coeffs if any(coeffs) else None  # type: ignore[return-value]
+
+
+def distort(x, y, coeffs: tuple[float, float, float, float]):
+    """Where the lens moves normalised image points (OpenCV's, y down): (x, y) -> (x_d, y_d).
+
+    x, y: numpy arrays or torch tensors of the same shape; coeffs: (k1, k2, p1, p2).
+    """
+    k1, k2, p1, p2 = coeffs
+    r2 = x * x + y * y
+    radial = 1 + k1 * r2 + k2 * r2 * r2
+    return x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x), y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+
+
+def undistort(x_d, y_d, coeffs: tuple[float, float, float, float], iterations: int = 10):
+    """Inverse of :func:`distort` by Newton's method from (x_d, y_d): (x_d, y_d) -> (x, y).
+
+    Converges quadratically wherever the lens is invertible (float64: ~1e-15 after a few steps
+    for the distortions of real lenses); check with :func:`distort` when the lens is extreme.
+    """
+    k1, k2, p1, p2 = coeffs
+    x, y = x_d, y_d
+    for _ in range(iterations):
+        ex, ey = distort(x, y, coeffs)
+        ex, ey = ex - x_d, ey - y_d
+        r2 = x * x + y * y
+        radial = 1 + k1 * r2 + k2 * r2 * r2
+        dradial = 2 * (k1 + 2 * k2 * r2)  # d radial / dx = dradial * x, / dy = dradial * y
+        # the Jacobian of distort, symmetric: d x_d / dy = d y_d / dx
+        jxx = radial + dradial * x * x + 2 * p1 * y + 6 * p2 * x
+        jxy = dradial * x * y + 2 * p1 * x + 2 * p2 * y
+        jyy = radial + dradial * y * y + 6 * p1 * y + 2 * p2 * x
+        det = jxx * jyy - jxy * jxy
+        x, y = x - (jyy * ex - jxy * ey) / det, y - (jxx * ey - jxy * ex) / det
+    return x, y
 
 
 def project_points(c2w: Tensor, intrinsics: Tensor, points: Tensor) -> tuple[Tensor, Tensor]:
@@ -121,13 +178,16 @@ def fov_from_focal(size_px: float, focal: Tensor) -> Tensor:
     return 2 * torch.atan(0.5 * size_px / focal)
 
 
-def unproject_depth(depth: Tensor, intrinsics: Tensor, c2w: Tensor) -> Tensor:
+def unproject_depth(depth: Tensor, intrinsics: Tensor, c2w: Tensor,
+                    distortion: tuple[float, float, float, float] | None = None) -> Tensor:
     """The pixels with a known z-depth as 3-D points in the frame ``c2w`` maps into (ray through the pixel centre).
 
     depth: [H, W] (0 = unknown), intrinsics: [4], c2w: [4, 4] -> [N, 3] float64, row-major order.
+    distortion: of the lens that recorded the depth map (see :func:`camera_directions`).
     """
     d = depth.to(torch.float64)
     rows, cols = torch.nonzero(d > 0, as_tuple=True)
     z = d[rows, cols]
-    cam = camera_directions(intrinsics.to(torch.float64), pixel_centre(cols), pixel_centre(rows)) * z[:, None]  # [N, 3]
+    cam = camera_directions(intrinsics.to(torch.float64), pixel_centre(cols), pixel_centre(rows), distortion)
+    cam = cam * z[:, None]  # [N, 3]
     return transform_points(c2w.to(torch.float64), cam)

@@ -22,38 +22,48 @@ def split(
     data: str = typer.Option(..., "--data", help=DATA_HELP),
     robots: int = typer.Option(2, "--robots", "-n", help="Number of robots (ids 1..N; the reference is 1)."),
     out: Path = typer.Option(..., "--out", help="Output folder (robot<id>/, eval/, truth.json, split.json, scene.json)."),
+    by: str = typer.Option("sector", help="sector: sectors of azimuth (equal round a full circle, quantiles along an "
+                           "arc) | trajectory: contiguous segments of the capture order."),
     overlap: float = typer.Option(0.0, help="Mean fraction of a robot's views shared with a neighbour, 0-0.4."),
+    sector_start: float = typer.Option(0.0, "--sector-start", help="Azimuth (deg) where robot 1's sector begins, when "
+                                       "the cameras surround the scene."),
     test_every: int = typer.Option(8, help="Every k-th view (0, k, 2k, ...) is a test view, seen by no robot; 0 = none."),
     frame: str = typer.Option("first_camera", help="Local frames: first_camera | offset | world | random."),
     width: int = typer.Option(None, help="Downscale images to this width (area interpolation)."),
+    robot_image_width: int = typer.Option(None, help="Robot folders get images this wide instead (e.g. for their own "
+                                          "SfM); the test views keep --width."),
     depth_prior: str = typer.Option("none", help="Depth written for robots: none | true | scaled (random a_m, b_m)."),
     max_scale: float = typer.Option(1.0, help="With --frame random: scale log-uniform in [1/x, x] (Sim(3)); 1 = SE(3)."),
     images_only: bool = typer.Option(False, help="Write robot images without poses (robots run their own SfM)."),
     calibrated_cameras: bool = typer.Option(False, help="With --images-only: also write each robot's camera focal "
                                             "length (camera.json), which its SfM then keeps fixed."),
     seed: int = typer.Option(0, help="Seed of the random frames and depth scale/shift."),
+    sets: list[str] = typer.Option([], "--set", help="Any other field of [split] in scenario.toml (SplitConfig), TOML "
+                                   "values, e.g. --set up=[0,0,1] --set offset_rotation_deg=[0,0,90] (repeatable)."),
     force: bool = typer.Option(False, help="Replace a previous split in --out."),
     topology: str = typer.Option("full", help="Topology written to swarm.toml: full | ring | star | line."),
     port_base: int = typer.Option(7500, help="swarm.toml endpoints: robot i listens on tcp/127.0.0.1:<base+i>."),
 ) -> None:
-    """Split a dataset into N robot folders by sectors of view direction (Di-NeRF's setting)."""
-    from agent.data.loaders import load_views
-    from agent.data.split import SplitConfig, split_views, write_split
-    from agent.geometry import sim3_decompose, so3_log
+    """Split a dataset into N robot folders by sectors of view direction (Di-NeRF's setting) or by trajectory."""
+    from agent.data.split import SplitConfig, split_dataset, write_split
+    from cli.config import apply_overrides
 
     cfg = SplitConfig(
         robots=robots,
+        by=by,  # type: ignore[arg-type]  # validated by SplitConfig
         overlap=overlap,
+        sector_start_deg=sector_start,
         test_every=test_every,
-        frame=frame,  # type: ignore[arg-type]  # validated by SplitConfig
+        frame=frame,  # type: ignore[arg-type]
         depth_prior=depth_prior,  # type: ignore[arg-type]
         random_max_scale=max_scale,
         images_only=images_only,
         calibrated_cameras=calibrated_cameras,
+        robot_image_width=robot_image_width,
         seed=seed,
     )
-    views = load_views(data, width=width)
-    result = split_views(views, cfg)
+    cfg = apply_overrides(cfg, sets)
+    views, result = split_dataset(data, cfg, width)
     write_split(result, out, overwrite=force)
     from cli.swarm_file import SWARM_FILE, loopback_endpoints, swarm_doc, write_swarm_file
 
@@ -62,10 +72,29 @@ def split(
     write_swarm_file(Path(out) / SWARM_FILE, swarm_doc(name, ids, topology,
                                                       network={"endpoints": loopback_endpoints(ids, port_base)}),
                      header="written by `dinerf-agent split`; edit freely (see cli/swarm_file.py)")
-
+    _print_split(result, f"{len(views)} views of {data} -> {out}")
     console = Console()
-    table = Table(title=f"{len(views)} views of {data} -> {out}")
-    for col in ("robot", "views", "sector (deg)", "overlap", "local frame (vs world)"):
+    console.print(f"scene box: {result.box_source}; depth prior: {cfg.depth_prior}; truth.json is for evaluation only")
+    console.print(f"swarm.toml: {topology} topology, loopback ports {port_base + ids[0]}..{port_base + ids[-1]}; "
+                  f"start each robot with: dinerf-agent up --id <id> --data {out}/robot<id>")
+
+
+_LAYOUTS = {
+    "circle": "sectors of equal width round the scene",
+    "arc": "the cameras cover an arc: sectors cut at quantiles of their azimuths",
+    "trajectory": "contiguous segments of the capture order",
+}
+
+
+def _print_split(result, title: str) -> None:
+    """The robots of a split (views, sector or azimuth span, overlap, local frame) and its test views."""
+    from agent.geometry import sim3_decompose, so3_log
+
+    cfg = result.config
+    console = Console()
+    table = Table(title=title)
+    span = "azimuths (deg)" if result.layout == "trajectory" else "sector (deg)"
+    for col in ("robot", "views", span, "overlap", "local frame (vs world)"):
         table.add_column(col)
     for rid, rob in result.robots.items():
         s, rot, t = sim3_decompose(rob.T_world_from_local)
@@ -75,20 +104,19 @@ def split(
         table.add_row(
             f"{rid}" + (" (ref)" if rid == result.reference_id else ""),
             str(len(rob.indices)),
-            "all" if len(result.robots) == 1 else f"{a % 360:.0f} .. {b % 360:.0f}",
+            "all" if len(result.robots) == 1 and result.layout != "trajectory" else f"{a % 360:.0f} .. {b % 360:.0f}",
             f"{100 * rob.overlap:.0f}%",
             desc,
         )
     console.print(table)
+    margin = (f"segments share {result.margin_views} views at each border" if result.layout == "trajectory"
+              else f"sector margin {result.margin_deg:.1f} deg")
     n_eval = len(result.eval_indices)
     console.print(
-        f"overlap: mean {100 * result.mean_overlap:.1f}% (asked {100 * overlap:.0f}%, sector margin {result.margin_deg:.1f} deg); "
-        f"test views: {n_eval} (every {test_every}th from 0)"
+        f"split by {cfg.by}: {_LAYOUTS[result.layout]}; overlap: mean {100 * result.mean_overlap:.1f}% "
+        f"(asked {100 * cfg.overlap:.0f}%, {margin}); test views: {n_eval} (every {cfg.test_every}th from 0)"
         + (f", {sum(1 for s in result.seen_by if len(s) == 0)} seen by no robot" if n_eval else "")
     )
-    console.print(f"scene box: {result.box_source}; depth prior: {depth_prior}; truth.json is for evaluation only")
-    console.print(f"swarm.toml: {topology} topology, loopback ports {port_base + ids[0]}..{port_base + ids[-1]}; "
-                  f"start each robot with: dinerf-agent up --id <id> --data {out}/robot<id>")
 
 
 @app.command()

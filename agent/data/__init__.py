@@ -23,6 +23,7 @@ _EXPORTS = {
     "SplitResult": "agent.data.split",
     "RobotSplit": "agent.data.split",
     "split_views": "agent.data.split",
+    "split_dataset": "agent.data.split",
     "write_split": "agent.data.split",
     "estimate_scene_box": "agent.data.capture",
     "write_views_folder": "agent.data.folder",

@@ -5,7 +5,9 @@ A robot folder is a nerfstudio-style dataset, so it loads back with
 
     transforms.json     camera_model PINHOLE, w, h, fl_x, fl_y, cx, cy (top level when all views
                         share them, else per frame), frames [{file_path, transform_matrix
-                        (OpenGL camera-to-world), depth_file_path?}], depth_unit_scale_factor 1.0
+                        (OpenGL camera-to-world), depth_file_path?}], depth_unit_scale_factor 1.0;
+                        camera_model OPENCV and k1, k2, p1, p2 when the views carry a lens
+                        distortion (``meta["distortion"]``): the images stay as the lens saw them
     images/<name>.png   8-bit RGBA (RGB when the source has no alpha)
     depth/<name>.npy    float32 z-depth in the folder's units, 0 = unknown (only with a depth prior)
 
@@ -26,6 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from agent.camera import DISTORTION_KEYS, distortion_coeffs
 from agent.data.views import DataError, Views
 
 __all__ = ["write_views_folder", "write_json", "write_png", "matrix_to_list", "read_scene", "read_truth", "SceneInfo"]
@@ -75,9 +78,12 @@ def write_views_folder(
 
     intr = views.intrinsics.to(torch.float64)
     shared = bool((intr == intr[0]).all())
-    top: dict[str, Any] = {"camera_model": "PINHOLE", "w": views.width, "h": views.height}
+    lens = distortion_coeffs(views.meta.get("distortion"))
+    top: dict[str, Any] = {"camera_model": "OPENCV" if lens else "PINHOLE", "w": views.width, "h": views.height}
     if shared:
         top.update(zip(("fl_x", "fl_y", "cx", "cy"), (float(x) for x in intr[0])))
+    if lens:  # one lens for all views, in nerfstudio's names
+        top.update(zip(DISTORTION_KEYS, lens))
     if views.depth is not None:
         top["depth_unit_scale_factor"] = 1.0
     if top_extra:

@@ -100,15 +100,17 @@ def load_views(
 def parse_procedural_spec(text: str, width: int | None = None):
     """``procedural:views=100,width=64,seed=0`` -> ``ProceduralConfig``.
 
-    Keys are the fields of ``ProceduralConfig`` (``views`` is short for ``num_views``); values
-    are numbers, or ``a/b`` for a pair such as ``elevation_deg=10/60``. A width without a height
-    keeps the aspect ratio; ``width`` given to :func:`load_views` wins over the spec.
+    Keys are the fields of ``ProceduralConfig`` (``views`` is short for ``num_views``, ``arc`` for
+    ``arc_deg``); values are numbers, ``0``/``1`` for a switch such as ``room=1``, or ``a/b`` for
+    a pair such as ``elevation_deg=10/60``. A width without a height keeps the aspect ratio;
+    ``width`` given to :func:`load_views` wins over the spec.
     """
     from agent.data.procedural import ProceduralConfig
 
     fields = {f.name: f for f in dataclasses.fields(ProceduralConfig)}
     hints = typing.get_type_hints(ProceduralConfig)
-    aliases = {"views": "num_views", "n": "num_views", "fov": "fov_deg", "elevation": "elevation_deg"}
+    aliases = {"views": "num_views", "n": "num_views", "fov": "fov_deg", "elevation": "elevation_deg",
+               "arc": "arc_deg", "arc_start": "arc_start_deg"}
     kwargs: dict[str, Any] = {}
     _, _, body = text.partition(":")
     for item in filter(None, (s.strip() for s in body.split(","))):
@@ -117,19 +119,9 @@ def parse_procedural_spec(text: str, width: int | None = None):
         if not eq or key not in fields:
             raise DataError(
                 f"procedural spec {text!r}: bad item {item!r}; expected key=value with keys "
-                f"{sorted(set(fields) | {'views'})}"
+                f"{sorted(set(fields) | {'views', 'arc'})}"
             )
-        kind = hints[key]
-        try:
-            if kind is int:
-                kwargs[key] = int(value)
-            elif kind is float:
-                kwargs[key] = float(value)
-            else:  # a pair of floats
-                lo, hi = value.split("/")
-                kwargs[key] = (float(lo), float(hi))
-        except ValueError:
-            raise DataError(f"procedural spec {text!r}: cannot read {key}={value!r}") from None
+        kwargs[key] = _spec_value(text, key, value.strip(), hints[key])
     if "width" in kwargs and "height" not in kwargs:  # a width alone keeps the default aspect ratio
         default = ProceduralConfig()
         kwargs["height"] = max(1, round(default.height * kwargs["width"] / default.width))
@@ -138,6 +130,23 @@ def parse_procedural_spec(text: str, width: int | None = None):
         height = max(1, round(cfg.height * width / cfg.width))
         cfg = dataclasses.replace(cfg, width=width, height=height)
     return cfg
+
+
+def _spec_value(text: str, key: str, value: str, kind: Any) -> Any:
+    """One value of a procedural spec as the field's type: int, float (or None), bool, pair of floats."""
+    try:
+        if kind is bool:
+            if value.lower() not in ("0", "1", "true", "false"):
+                raise ValueError
+            return value.lower() in ("1", "true")
+        if kind is int:
+            return int(value)
+        if kind is float or type(None) in typing.get_args(kind):
+            return float(value)
+        lo, hi = value.split("/")  # a pair of floats
+        return float(lo), float(hi)
+    except ValueError:
+        raise DataError(f"procedural spec {text!r}: cannot read {key}={value!r}") from None
 
 
 def _load_images_only(folder: Path, images: list[Path], *, width: int | None, cache_dir: str | Path | None = None,

@@ -8,7 +8,11 @@ Conventions (the same everywhere in the project, see ``agent.camera``):
 - ``depth`` is z-depth along the optical axis in scene units, 0 where unknown (background,
   no prior). A depth sensor, an SfM point or a synthetic renderer all give z-depth.
 - ``images`` hold straight (not premultiplied) colour in [0, 1]; RGBA keeps its alpha so that
-  training can composite onto a random background.
+  training can composite onto a random background. Captures with a background everywhere (real
+  ones, the procedural room) are RGB: no alpha channel rather than an alpha of 1.
+- ``meta["distortion"]``, when present, is the lens that recorded the images: ``{k1, k2, p1, p2}``
+  of OpenCV's radial-tangential model (``agent.camera``), the names nerfstudio writes next to
+  ``camera_model: OPENCV``. Without it the images are pinhole images.
 """
 
 from __future__ import annotations

@@ -81,18 +81,13 @@ def free_ports(count: int) -> list[int]:
 def prepare_split(spec: ScenarioSpec, out: Path) -> dict:
     """Write the robot folders with ``agent.data.split`` (no shelling out); returns a summary.
 
-    With ``split.robot_image_width`` the dataset is split at that width (robot folders, their
-    intrinsics and depth all consistent) and only the held-out views are downscaled to the
-    scenario's width, the resolution of the evaluation and of the centralised baseline. The split
-    itself (sectors, held-out views, box) depends on the poses only, not on the width.
+    With ``split.robot_image_width`` the robots get images that wide and only the held-out views
+    are at the scenario's width, the resolution of the evaluation and of the centralised baseline
+    (``agent.data.split.split_dataset``).
     """
-    from agent.data.loaders import load_views, resize_views
-    from agent.data.split import split_views, write_split
+    from agent.data.split import split_dataset, write_split
 
-    views = load_views(spec.resolved_dataset(), width=spec.split.robot_image_width or spec.width)
-    result = split_views(views, spec.split)
-    if spec.split.robot_image_width is not None and spec.width is not None and result.eval_indices:
-        result.eval_views = resize_views(result.eval_views, spec.width)
+    views, result = split_dataset(spec.resolved_dataset(), spec.split, spec.width)
     write_split(result, out, overwrite=True)
     return {
         "views": len(views),

@@ -13,6 +13,7 @@ error that names it. Example (every table but ``[scenario]`` is optional)::
     overlap = 0.1
     frame = "offset"
     test_every = 8                             # test views 0, 8, 16 ... seen by no robot
+    # by = "trajectory"                        # segments of the capture order instead of azimuth sectors
     # images_only = true                       # robots get no poses (own SfM); robot_image_width = 400
     # calibrated_cameras = true                # ... but each knows its camera's focal length (camera.json)
 
