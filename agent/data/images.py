@@ -29,8 +29,8 @@ __all__ = [
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG", ".tif", ".tiff", ".bmp", ".webp")
 
 
-def read_image(path: Path) -> np.ndarray:
-    """Read an image as float32 [H, W, 3|4] in [0, 1], RGB(A) channel order."""
+def read_image(path: str | Path) -> np.ndarray:
+    """Any 8/16-bit or float grey/RGB/RGBA file -> float32 [H, W, 3|4] straight colour in [0, 1], RGB(A) order."""
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise DataError(f"{path}: cannot be read as an image")
