@@ -12,8 +12,9 @@ One entry point, :func:`load_views`, looks at what it is given and picks the loa
 
 Every loader returns the conventions of :mod:`agent.data.views` (OpenGL camera-to-world,
 per-view ``fx, fy, cx, cy`` with the pixel centre at ``u + 0.5``, z-depth with 0 = unknown,
-straight RGBA kept), and every failure the user can fix is a :class:`DataError` that names the
-file and says what was expected.
+straight RGBA kept, pinhole cameras: lens distortion is undone at load time), masks beside the
+images become alpha (:mod:`agent.data.masks`), and every failure the user can fix is a
+:class:`DataError` that names the file and says what was expected.
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ def load_views(
     images_dir: str | Path | None = None,
     sfm_cache_dir: str | Path | None = None,
     sfm: Any = None,
+    undistort: bool = True,
 ) -> Views:
     """Load ``source`` (a path or ``procedural[:k=v,...]``) as :class:`Views`.
 
@@ -61,6 +63,9 @@ def load_views(
     images_dir: where a COLMAP model's images are, when not next to the model.
     sfm_cache_dir: where SfM of an images-only folder keeps its result (default: not cached).
     sfm: the ``agent.data.sfm.SfmConfig`` of that SfM (default: its defaults).
+    undistort: undo lens distortion (OpenCV, at the native size, new pinhole intrinsics; see
+    :mod:`agent.data.lens`). False keeps the distorted images and ignores radial-tangential
+    distortion with a note (e.g. to measure what that costs); a fisheye is then an error.
     """
     if width is not None and (not isinstance(width, int) or width < 1):
         raise DataError(f"width must be a positive integer, got {width!r}")
@@ -76,17 +81,17 @@ def load_views(
         raise DataError(f"{path}: no such file or folder; {EXPECTED_LAYOUTS}")
     if path.is_file():
         if path.suffix.lower() == ".json":
-            return load_transforms(path, width=width, load_depth=load_depth)
+            return load_transforms(path, width=width, load_depth=load_depth, undistort=undistort)
         if path.stem in ("cameras", "images", "points3D") and path.suffix in (".bin", ".txt"):
-            return load_colmap(path.parent, width=width, load_depth=load_depth, images_dir=images_dir)
+            return load_colmap(path.parent, width=width, load_depth=load_depth, images_dir=images_dir, undistort=undistort)
         raise DataError(f"{path}: not a dataset file; {EXPECTED_LAYOUTS}")
 
     for name in ("transforms.json", "transforms_train.json"):
         if (path / name).is_file():
-            return load_transforms(path / name, width=width, load_depth=load_depth)
+            return load_transforms(path / name, width=width, load_depth=load_depth, undistort=undistort)
     model = find_colmap_model(path)
     if model is not None:
-        return load_colmap(model, width=width, load_depth=load_depth, images_dir=images_dir)
+        return load_colmap(model, width=width, load_depth=load_depth, images_dir=images_dir, undistort=undistort)
     images = list_image_files(path) or list_image_files(path / "images")
     if images:
         return _load_images_only(path, images, width=width, cache_dir=sfm_cache_dir, config=sfm)
