@@ -15,6 +15,7 @@ _EXPORTS = {
     "load_views": "agent.data.loaders",
     "load_transforms": "agent.data.transforms_json",
     "load_colmap": "agent.data.colmap",
+    "load_llff": "agent.data.llff",
     "resize_views": "agent.data.images",
     "ProceduralConfig": "agent.data.procedural",
     "procedural_views": "agent.data.procedural",

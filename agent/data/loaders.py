@@ -8,6 +8,7 @@ One entry point, :func:`load_views`, looks at what it is given and picks the loa
   nerfstudio or instant-ngp conventions (:mod:`agent.data.transforms_json`);
 - a COLMAP sparse model (``sparse/0/`` or a folder with ``cameras``/``images``/``points3D`` as
   ``.bin`` or ``.txt``), read with pycolmap (:mod:`agent.data.colmap`);
+- an LLFF folder: ``poses_bounds.npy`` with ``images/`` and/or ``images_N/`` (:mod:`agent.data.llff`);
 - a folder of images only, handed to ``agent.data.sfm.run_sfm`` when that module is installed.
 
 Every loader returns the conventions of :mod:`agent.data.views` (OpenGL camera-to-world,
@@ -28,6 +29,7 @@ from typing import Any
 
 from agent.data.colmap import find_colmap_model, load_colmap
 from agent.data.images import IMAGE_EXTENSIONS, list_image_files, resize_views
+from agent.data.llff import POSES_BOUNDS, load_llff
 from agent.data.transforms_json import load_transforms
 from agent.data.views import EXPECTED_LAYOUTS, DataError, Views
 
@@ -37,6 +39,7 @@ __all__ = [
     # the loaders load_views picks from, importable from here as before
     "load_transforms",
     "load_colmap",
+    "load_llff",
     "find_colmap_model",
     "resize_views",
     "IMAGE_EXTENSIONS",
@@ -84,14 +87,18 @@ def load_views(
             return load_transforms(path, width=width, load_depth=load_depth, undistort=undistort)
         if path.stem in ("cameras", "images", "points3D") and path.suffix in (".bin", ".txt"):
             return load_colmap(path.parent, width=width, load_depth=load_depth, images_dir=images_dir, undistort=undistort)
+        if path.name == POSES_BOUNDS:
+            return load_llff(path.parent, width=width)
         raise DataError(f"{path}: not a dataset file; {EXPECTED_LAYOUTS}")
 
     for name in ("transforms.json", "transforms_train.json"):
         if (path / name).is_file():
             return load_transforms(path / name, width=width, load_depth=load_depth, undistort=undistort)
     model = find_colmap_model(path)
-    if model is not None:
+    if model is not None:  # before LLFF: an LLFF folder's sparse/0 has the lens and the depth
         return load_colmap(model, width=width, load_depth=load_depth, images_dir=images_dir, undistort=undistort)
+    if (path / POSES_BOUNDS).is_file():
+        return load_llff(path, width=width)
     images = list_image_files(path) or list_image_files(path / "images")
     if images:
         return _load_images_only(path, images, width=width, cache_dir=sfm_cache_dir, config=sfm)

@@ -13,6 +13,7 @@ import numpy as np
 # ../shared/data beside the repository; DINERF_SHARED_DATA points elsewhere (e.g. from a git worktree)
 SHARED_DATA = Path(os.environ.get("DINERF_SHARED_DATA") or Path(__file__).resolve().parents[2].parent / "shared/data")
 LEGO = SHARED_DATA / "nerf_synthetic/lego"
+MARYROSE = SHARED_DATA / "maryrose"
 
 
 def write_png(path: Path, img: np.ndarray) -> None:
