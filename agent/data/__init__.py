@@ -26,6 +26,7 @@ _EXPORTS = {
     "split_views": "agent.data.split",
     "write_split": "agent.data.split",
     "estimate_scene_box": "agent.data.capture",
+    "capture_warnings": "agent.data.capture",
     "write_views_folder": "agent.data.folder",
     "read_scene": "agent.data.folder",
     "read_truth": "agent.data.folder",

@@ -10,7 +10,7 @@ from agent.camera import fov_from_focal, optical_axis, unproject_depth
 from agent.data.views import DataError, Views
 
 __all__ = ["scene_center", "mean_up", "azimuths_deg", "estimate_scene_box", "box_from_bounds", "view_bounds",
-           "DEPTH_BOX_QUANTILE", "DEPTH_BOX_PADDING"]
+           "capture_warnings", "DEPTH_BOX_QUANTILE", "DEPTH_BOX_PADDING"]
 
 
 def scene_center(c2w: Tensor) -> Tensor:
@@ -135,3 +135,22 @@ def box_from_bounds(c2w: Tensor, near_far: Tensor) -> tuple[Tensor, float]:
     d = ((centre - c2w[:, :3, 3]) * axis).sum(-1) / axis.norm(dim=-1)  # [M] z-depth of the centre
     reach = torch.maximum(d - nf[:, 0], nf[:, 1] - d)
     return centre, float(reach.max())
+
+
+def capture_warnings(views: Views, box_source: str) -> list[str]:
+    """What in a dataset would train badly, one line each (``dinerf-agent inspect`` prints them).
+
+    box_source: where :func:`estimate_scene_box` found the box.
+    """
+    out = []
+    if not views.has_alpha or bool((views.images[..., 3] >= 1.0).all()):
+        out.append("RGB images without alpha or masks: everything the cameras see must be modelled, i.e. an unbounded "
+                   "field, which the scene box cuts off; to train an object alone, give masks (masks/ beside images/)")
+    if box_source == "cameras":
+        out.append("scene box estimated from the cameras only (the frustum width where the optical axes meet): "
+                   "check that it holds the whole scene")
+    distortion = views.meta.get("distortion")
+    if isinstance(distortion, dict) and not distortion.get("undistorted"):
+        out.append(f"lens distortion ignored ({', '.join(distortion.get('models', []))}): rays miss their pixels "
+                   "towards the image edges")
+    return out
