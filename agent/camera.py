@@ -2,7 +2,9 @@
 
 - Cameras are camera-to-world ``c2w`` 4x4 matrices in the OpenGL/Blender convention: +X right,
   +Y up in the image, the camera looks down -Z. OpenCV and COLMAP cameras (+Y down, looking
-  down +Z) differ by a flip of the camera's Y and Z axes (:data:`OPENCV_FROM_OPENGL`).
+  down +Z) differ by a flip of the camera's Y and Z axes (:data:`OPENCV_FROM_OPENGL`). LLFF's
+  ``poses_bounds.npy`` stores the camera axes in the order [down, right, back]
+  (:func:`llff_to_opengl_c2w`).
 - Intrinsics are ``[fx, fy, cx, cy]`` in pixels of the image they belong to.
 - Pixel (column i, row j) covers ``[i, i + 1) x [j, j + 1)``: its centre is at ``(i + 0.5, j + 0.5)``
   (COLMAP's keypoints follow the same rule). OpenCV keypoints (SIFT) put the centre of pixel i at
@@ -34,6 +36,9 @@ __all__ = [
     "OPENCV_PIXEL_OFFSET",
     "opencv_to_opengl_c2w",
     "w2c_opencv_to_c2w_opengl",
+    "llff_to_opengl_c2w",
+    "opencv_camera_matrix",
+    "intrinsics_from_opencv_matrix",
     "pixel_centre",
     "opencv_to_pixel",
     "pixel_to_opencv",
@@ -63,6 +68,32 @@ def opencv_to_opengl_c2w(c2w_opencv: np.ndarray) -> np.ndarray:
 def w2c_opencv_to_c2w_opengl(w2c: np.ndarray) -> np.ndarray:
     """COLMAP's world-to-camera [4, 4] (OpenCV camera) -> OpenGL camera-to-world [4, 4]."""
     return opencv_to_opengl_c2w(np.linalg.inv(w2c))
+
+
+def llff_to_opengl_c2w(poses: np.ndarray) -> np.ndarray:
+    """LLFF camera-to-world [..., 3, 4+], columns [down, right, back | centre] -> OpenGL [..., 4, 4].
+
+    OpenGL's [right, up, back] is LLFF's [col1, -col0, col2]; further columns (LLFF's H, W, focal) are dropped.
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    c2w = np.zeros(poses.shape[:-2] + (4, 4))
+    c2w[..., :3, 0] = poses[..., :3, 1]
+    c2w[..., :3, 1] = -poses[..., :3, 0]
+    c2w[..., :3, 2] = poses[..., :3, 2]
+    c2w[..., :3, 3] = poses[..., :3, 3]
+    c2w[..., 3, 3] = 1.0
+    return c2w
+
+
+def opencv_camera_matrix(intrinsics) -> np.ndarray:
+    """(fx, fy, cx, cy) in this module's pixels -> OpenCV's 3x3 camera matrix (pixel i centred at i)."""
+    fx, fy, cx, cy = (float(x) for x in intrinsics)
+    return np.array([[fx, 0.0, cx - OPENCV_PIXEL_OFFSET], [0.0, fy, cy - OPENCV_PIXEL_OFFSET], [0.0, 0.0, 1.0]])
+
+
+def intrinsics_from_opencv_matrix(k: np.ndarray) -> tuple[float, float, float, float]:
+    """Inverse of :func:`opencv_camera_matrix`: OpenCV's 3x3 camera matrix -> (fx, fy, cx, cy)."""
+    return float(k[0, 0]), float(k[1, 1]), float(k[0, 2]) + OPENCV_PIXEL_OFFSET, float(k[1, 2]) + OPENCV_PIXEL_OFFSET
 
 
 def pixel_centre(index):

@@ -75,6 +75,10 @@ def split(
     _print_split(result, f"{len(views)} views of {data} -> {out}")
     console = Console()
     console.print(f"scene box: {result.box_source}; depth prior: {cfg.depth_prior}; truth.json is for evaluation only")
+    from agent.data.capture import capture_warnings
+
+    for warning in capture_warnings(views, result.box_source):
+        console.print(f"[yellow]warning:[/yellow] {warning}")
     console.print(f"swarm.toml: {topology} topology, loopback ports {port_base + ids[0]}..{port_base + ids[-1]}; "
                   f"start each robot with: dinerf-agent up --id <id> --data {out}/robot<id>")
 
@@ -124,30 +128,23 @@ def _print_split(result, title: str) -> None:
 def inspect(
     data: str = typer.Option(..., "--data", help=DATA_HELP),
     width: int = typer.Option(None, help="Load at this width (as training would)."),
+    undistort: bool = typer.Option(True, help="Undo lens distortion at load (--no-undistort: ignore it, as before)."),
 ) -> None:
-    """Show what a dataset holds: views, size, intrinsics, depth, camera layout, scene bounds."""
-    from agent.camera import fov_from_focal
+    """Show what a dataset holds: views, size, masks, lens, intrinsics, depth, camera layout, bounds, scene box."""
+    from agent.data.capture import capture_warnings, estimate_scene_box, mean_up, scene_center
     from agent.data.loaders import load_views
-    from agent.data.split import estimate_scene_box, mean_up, scene_center
 
-    v = load_views(data, width=width)
+    v = load_views(data, width=width, undistort=undistort)
     console = Console()
     table = Table(title=str(data), show_header=False)
     table.add_column("what", style="bold")
     table.add_column("value")
-    table.add_row("format", str(v.meta.get("format", "?")))
+    fmt = str(v.meta.get("format", "?"))
+    table.add_row("format", fmt.upper() if fmt in ("llff", "colmap") else fmt)
     table.add_row("views", f"{len(v)} ({', '.join(v.names[:3])}{', ...' if len(v) > 3 else ''})")
     table.add_row("size", f"{v.width} x {v.height}, {'RGBA' if v.has_alpha else 'RGB'}")
-    if v.has_alpha:
-        table.add_row("alpha", f"mean {float(v.images[..., 3].mean()):.3f} (objects cover this fraction of pixels)")
-    k = v.intrinsics
-    fov = torch.rad2deg(fov_from_focal(v.width, k[:, 0]))
-    uniq = "shared by all views" if bool((k == k[0]).all()) else "per view"
-    table.add_row(
-        "intrinsics",
-        f"fx {float(k[:, 0].min()):.2f}-{float(k[:, 0].max()):.2f}, fy {float(k[:, 1].min()):.2f}-{float(k[:, 1].max()):.2f}, "
-        f"cx {float(k[:, 2].mean()):.2f}, cy {float(k[:, 3].mean()):.2f} ({uniq}); horizontal fov {float(fov.mean()):.1f} deg",
-    )
+    for what, value in _pixel_rows(v):
+        table.add_row(what, value)
     if v.depth is None:
         table.add_row("depth", "none")
     else:
@@ -161,11 +158,58 @@ def inspect(
         "cameras",
         f"centre of the optical axes {_fmt(centre)}, distance {float(dist.min()):.3f}-{float(dist.max()):.3f}, up {_fmt(mean_up(v.c2w))}",
     )
+    table.add_row("near/far", _bounds_row(v))
     box_c, box_h, src = estimate_scene_box(v)
-    table.add_row("scene box", f"centre {_fmt(box_c)}, half-size {box_h:.3f} (from the {src})")
+    table.add_row("scene box", f"centre {_fmt(box_c)}, half-size {box_h:.3f} (from the {_BOX_SOURCES.get(src, src)})")
     for note in v.meta.get("notes", []):
         table.add_row("note", note)
+    for warning in capture_warnings(v, src):
+        table.add_row("[yellow]warning[/yellow]", warning)
     console.print(table)
+
+
+_BOX_SOURCES = {"dataset": "dataset", "depth": "depth maps", "bounds": "near/far bounds", "cameras": "cameras only"}
+
+
+def _pixel_rows(v) -> list[tuple[str, str]]:
+    """The rows of what the pixels are: alpha, masks, lens distortion, intrinsics."""
+    from agent.camera import fov_from_focal
+
+    rows = []
+    if v.has_alpha:
+        rows.append(("alpha", f"mean {float(v.images[..., 3].mean()):.3f} (objects cover this fraction of pixels)"))
+    masks = v.meta.get("masks")
+    if isinstance(masks, dict):
+        folders = ", ".join(Path(f).name + "/" for f in masks.get("folders", []))
+        where = "mask_path of transforms.json" if masks.get("from") == "mask_path" else folders
+        rows.append(("masks", f"yes: {masks.get('count')} from {where}, composited as alpha; mean coverage "
+                              f"{float(v.images[..., 3].mean()):.3f}"))
+    else:
+        rows.append(("masks", "no"))
+    distortion = v.meta.get("distortion")
+    if isinstance(distortion, dict):
+        rows.append(("distortion", f"{', '.join(distortion.get('models', []))}: {distortion.get('done')}"))
+    else:
+        rows.append(("distortion", "none (pinhole cameras)"))
+    k = v.intrinsics
+    fov = torch.rad2deg(fov_from_focal(v.width, k[:, 0]))
+    uniq = "shared by all views" if bool((k == k[0]).all()) else "per view"
+    rows.append((
+        "intrinsics",
+        f"fx {float(k[:, 0].min()):.2f}-{float(k[:, 0].max()):.2f}, fy {float(k[:, 1].min()):.2f}-{float(k[:, 1].max()):.2f}, "
+        f"cx {float(k[:, 2].mean()):.2f}, cy {float(k[:, 3].mean()):.2f} ({uniq}); horizontal fov {float(fov.mean()):.1f} deg",
+    ))
+    return rows
+
+
+def _bounds_row(v) -> str:
+    from agent.data.capture import view_bounds
+
+    b = view_bounds(v)
+    if b is None:
+        return "none"
+    return (f"near {float(b[:, 0].min()):.3f}-{float(b[:, 0].max()):.3f}, far {float(b[:, 1].min()):.3f}-"
+            f"{float(b[:, 1].max()):.3f} (per view, scene units)")
 
 
 def _fmt(t: torch.Tensor) -> str:

@@ -9,7 +9,8 @@ from torch import Tensor
 from agent.camera import fov_from_focal, optical_axis, unproject_depth
 from agent.data.views import DataError, Views
 
-__all__ = ["scene_center", "mean_up", "azimuths_deg", "estimate_scene_box", "DEPTH_BOX_QUANTILE", "DEPTH_BOX_PADDING"]
+__all__ = ["scene_center", "mean_up", "azimuths_deg", "estimate_scene_box", "box_from_bounds", "view_bounds",
+           "capture_warnings", "DEPTH_BOX_QUANTILE", "DEPTH_BOX_PADDING"]
 
 
 def scene_center(c2w: Tensor) -> Tensor:
@@ -79,9 +80,9 @@ def estimate_scene_box(views: Views) -> tuple[Tensor, float, str]:
 
     In order of trust: ``meta['scene_box_world']`` (the procedural scene knows it exactly; a json
     may carry it); the bounds of the depth unprojected into the world (1st-99th percentile per
-    axis, padded by 20%); else the cameras: centre of the optical axes and the half-width of the
-    median frustum at that distance (for the Blender scenes this gives ~1.45, close to the
-    customary [-1.5, 1.5]^3).
+    axis, padded by 20%); the per-view near/far bounds of LLFF (:func:`box_from_bounds`); else
+    the cameras: centre of the optical axes and the half-width of the median frustum at that
+    distance (for the Blender scenes this gives ~1.45, close to the customary [-1.5, 1.5]^3).
 
     The depth bounds must not clip the object: a box that cuts off its extremities leaves them
     unrenderable. The 2nd-98th percentile padded by 10% cut 1.4% of lego's SfM points inside the
@@ -99,8 +100,57 @@ def estimate_scene_box(views: Views) -> tuple[Tensor, float, str]:
             p = p[torch.randperm(len(p), generator=torch.Generator().manual_seed(0))[:200_000]]
         lo, hi = torch.quantile(p, DEPTH_BOX_QUANTILE, dim=0), torch.quantile(p, 1 - DEPTH_BOX_QUANTILE, dim=0)
         return 0.5 * (lo + hi), float(0.5 * (1 + DEPTH_BOX_PADDING) * (hi - lo).max()), "depth"
+    bounds = view_bounds(views)
+    if bounds is not None:
+        centre, half = box_from_bounds(views.c2w, bounds)
+        return centre, half, "bounds"
     center = scene_center(views.c2w)
     dist = (views.c2w[:, :3, 3].to(torch.float64) - center).norm(dim=-1)
     fov = torch.minimum(fov_from_focal(views.width, views.intrinsics[:, 0]), fov_from_focal(views.height, views.intrinsics[:, 1]))
     half_fov = (0.5 * fov).to(torch.float64)
     return center, float((dist * torch.tan(half_fov)).median()), "cameras"
+
+
+def view_bounds(views: Views) -> Tensor | None:
+    """[M, 2] near/far depth bounds of every view from ``meta['bounds']`` ({name: [near, far]}), or None."""
+    table = views.meta.get("bounds")
+    if not isinstance(table, dict) or not all(n in table for n in views.names):
+        return None
+    return torch.tensor([table[n] for n in views.names], dtype=torch.float64)
+
+
+def box_from_bounds(c2w: Tensor, near_far: Tensor) -> tuple[Tensor, float]:
+    """The box the per-view depth bounds put the scene in: (centre [3], half-size).
+
+    c2w: [M, 4, 4], near_far: [M, 2] z-depth bounds (LLFF's: the 0.1th-99.9th percentile depth
+    of the SfM points each view sees). Centred on the point nearest the optical axes
+    (:func:`scene_center`); the half-size is the farthest the bounds reach from it along any
+    camera's axis, ``max(d - near, far - d)`` with ``d`` the centre's z-depth in that camera. An
+    object seen from all round is inside (what one view sees at its edge is on another's axis);
+    a forward-facing capture, whose centre is the mean camera, gets the box of its far bound.
+    """
+    centre = scene_center(c2w)
+    c2w, nf = c2w.to(torch.float64), near_far.to(torch.float64)
+    axis = optical_axis(c2w)
+    d = ((centre - c2w[:, :3, 3]) * axis).sum(-1) / axis.norm(dim=-1)  # [M] z-depth of the centre
+    reach = torch.maximum(d - nf[:, 0], nf[:, 1] - d)
+    return centre, float(reach.max())
+
+
+def capture_warnings(views: Views, box_source: str) -> list[str]:
+    """What in a dataset would train badly, one line each (``dinerf-agent inspect`` prints them).
+
+    box_source: where :func:`estimate_scene_box` found the box.
+    """
+    out = []
+    if not views.has_alpha or bool((views.images[..., 3] >= 1.0).all()):
+        out.append("RGB images without alpha or masks: everything the cameras see must be modelled, i.e. an unbounded "
+                   "field, which the scene box cuts off; to train an object alone, give masks (masks/ beside images/)")
+    if box_source == "cameras":
+        out.append("scene box estimated from the cameras only (the frustum width where the optical axes meet): "
+                   "check that it holds the whole scene")
+    distortion = views.meta.get("distortion")
+    if isinstance(distortion, dict) and not distortion.get("undistorted"):
+        out.append(f"lens distortion ignored ({', '.join(distortion.get('models', []))}): rays miss their pixels "
+                   "towards the image edges")
+    return out

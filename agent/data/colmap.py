@@ -9,13 +9,15 @@ import numpy as np
 import torch
 
 from agent.camera import w2c_opencv_to_c2w_opengl
-from agent.data.images import read_image, resize_image, stack_images, target_size, unique_names
+from agent.data.frames import Pixels, distortion_meta, load_pixels
+from agent.data.images import stack_images, unique_names
+from agent.data.lens import COLMAP_LENS_MODELS, Lens, colmap_lens
+from agent.data.masks import find_masks, masks_meta
 from agent.data.views import DataError, Views
 
 __all__ = ["load_colmap", "find_colmap_model"]
 
-# Camera models whose distortion we may ignore (after saying so in meta); others need undistortion.
-_COLMAP_MODELS = {"SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"}
+_PINHOLES = ("SIMPLE_PINHOLE", "PINHOLE")
 
 
 def load_colmap(
@@ -24,66 +26,97 @@ def load_colmap(
     width: int | None = None,
     load_depth: bool = True,
     images_dir: str | Path | None = None,
+    undistort: bool = True,
 ) -> Views:
     """Read a COLMAP sparse model with pycolmap: registered images, poses, intrinsics, sparse depth.
 
     COLMAP stores world-to-camera in the OpenCV convention (+Z forward, +Y down); the
     camera-to-world in OpenGL is ``inv([R|t]) @ diag(1, -1, -1, 1)``. Images are sorted by
-    name (COLMAP's ids are arbitrary). Radial/tangential distortion of the supported models is
-    ignored (fine for the small distortion of undistorted or near-pinhole cameras) and listed in
-    ``meta['notes']``. The sparse depth of an image is the z-depth of each 3-D point it observes,
-    written at the pixel of its keypoint (COLMAP's pixel centres are at +0.5, as ours), the
-    nearest point winning; 0 elsewhere.
+    name (COLMAP's ids are arbitrary). Lens distortion (the radial, OpenCV and fisheye models,
+    :data:`agent.data.lens.COLMAP_LENS_MODELS`) is undone at the images' native size; with
+    ``undistort=False`` radial-tangential distortion is ignored instead (fine for near-pinhole
+    cameras) and listed in ``meta['notes']``. Masks in a ``masks/`` folder beside ``images/``
+    become alpha. The sparse depth of an image is the z-depth of each 3-D point it observes,
+    written at the pixel of its (undistorted) keypoint (COLMAP's pixel centres are at +0.5, as
+    ours), the nearest point winning; 0 elsewhere.
     """
     model_dir, rec, regs = _open_model(Path(model_dir))
     names = [im.name for im in regs]
     img_dir = _find_images_dir(model_dir, names, Path(images_dir) if images_dir is not None else None)
+    masks = find_masks([img_dir / n for n in names], root=img_dir, where=f"{model_dir}: ")
     xyz_of = {pid: np.asarray(p.xyz, dtype=np.float64) for pid, p in rec.points3D.items()}
 
     notes: set[str] = set()
-    images, poses, intrinsics, depths = [], [], [], []
-    for im in regs:
+    ignored: set[str] = set()
+    pixels: list[Pixels] = []
+    poses, depths = [], []
+    for k, im in enumerate(regs):
         cam = rec.cameras[im.camera_id]
-        _check_camera_model(cam, im.camera_id, model_dir, notes)
+        lens = _camera_lens(cam, im.camera_id, model_dir, undistort, notes, ignored)
         where = f"{model_dir}: image {im.name}"
-        img = _read_resized(img_dir / im.name, width, where)
-        new_h, new_w = img.shape[:2]
-        if images and images[0].shape[:2] != (new_h, new_w):
-            raise DataError(f"inconsistent image sizes: {im.name} is {new_w}x{new_h} but {names[0]} is "
-                            f"{images[0].shape[1]}x{images[0].shape[0]}")
-        # intrinsics are for cam.width x cam.height; the files may be a resized copy
-        sx, sy = new_w / cam.width, new_h / cam.height
-        intrinsics.append(
-            (cam.focal_length_x * sx, cam.focal_length_y * sy, cam.principal_point_x * sx, cam.principal_point_y * sy)
-        )
+        px = load_pixels(img_dir / im.name, _file_intrinsics(cam), where=where, width=width,
+                         mask=masks[k] if masks else None, lens=lens)
+        if pixels and pixels[0].size != px.size:
+            raise DataError(f"inconsistent image sizes: {im.name} is {px.size[0]}x{px.size[1]} but {names[0]} is "
+                            f"{pixels[0].size[0]}x{pixels[0].size[1]}")
         w2c = np.eye(4)
         w2c[:3, :] = np.asarray(im.cam_from_world().matrix(), dtype=np.float64)
         if not np.isfinite(w2c).all():
             raise DataError(f"{where}: pose contains NaN or infinity")
         poses.append(w2c_opencv_to_c2w_opengl(w2c))
-        images.append(img)
+        pixels.append(px)
         if load_depth:
-            depths.append(_sparse_depth(im, w2c, xyz_of, sx, sy, new_w, new_h))
+            depths.append(_sparse_depth(im, w2c, xyz_of, _keypoints_to_pixels(cam, px), *px.size))
 
     meta: dict[str, Any] = {
         "source": str(model_dir),
         "format": "colmap",
         "images_dir": str(img_dir),
-        "notes": sorted(notes),
         "num_points3D": len(xyz_of),
         "depth_sparse": True,
         "depth_kind": "sparse SfM points (z-depth at keypoints)",
     }
+    if masks:
+        meta["masks"] = masks_meta(masks)
+    distortion, lens_notes = distortion_meta([p.undistortion for p in pixels if p.undistortion is not None], sorted(ignored))
+    if distortion is not None:
+        meta["distortion"] = distortion
+    meta["notes"] = sorted(notes | set(lens_notes))
     if width is not None:
         meta["width"] = width
     return Views(
-        images=torch.from_numpy(stack_images(images)),
+        images=torch.from_numpy(stack_images([p.image for p in pixels])),
         c2w=torch.from_numpy(np.stack(poses)).float(),
-        intrinsics=torch.tensor(intrinsics, dtype=torch.float32),
+        intrinsics=torch.tensor([p.intrinsics for p in pixels], dtype=torch.float32),
         names=unique_names(names),
         depth=torch.from_numpy(np.stack(depths)) if load_depth else None,
         meta=meta,
     )
+
+
+def _file_intrinsics(cam: Any):
+    """(W, H) of an image file -> the camera's (fx, fy, cx, cy) at that size: the files may be a
+    resized copy of the images the model was made from (distortion is in normalised coordinates)."""
+
+    def at(w0: int, h0: int) -> tuple[float, float, float, float]:
+        sx, sy = w0 / cam.width, h0 / cam.height
+        return (cam.focal_length_x * sx, cam.focal_length_y * sy, cam.principal_point_x * sx, cam.principal_point_y * sy)
+
+    return at
+
+
+def _keypoints_to_pixels(cam: Any, px: Pixels):
+    """Keypoints [N, 2] (the model's pixels) -> their position in the prepared image (undistorted, resized)."""
+    w0, h0 = px.native_size
+    to_file = np.array([w0 / cam.width, h0 / cam.height])
+
+    def convert(xy: np.ndarray) -> np.ndarray:
+        uv = xy * to_file
+        if px.undistortion is not None:
+            uv = px.undistortion.points(uv)
+        return uv * np.asarray(px.scale)
+
+    return convert
 
 
 def _open_model(model_dir: Path) -> tuple[Path, Any, list]:
@@ -105,39 +138,40 @@ def _open_model(model_dir: Path) -> tuple[Path, Any, list]:
     return model_dir, rec, regs
 
 
-def _check_camera_model(cam: Any, camera_id: int, model_dir: Path, notes: set[str]) -> None:
-    """Refuse models that need undistortion; note the distortion of those whose distortion is ignored."""
-    model_name = cam.model.name
-    if model_name not in _COLMAP_MODELS:
+def _camera_lens(cam: Any, camera_id: int, model_dir: Path, undistort: bool, notes: set[str],
+                 ignored: set[str]) -> Lens | None:
+    """The lens to undo for a camera (None: a pinhole, or distortion ignored with a note)."""
+    name = cam.model.name
+    if name not in _PINHOLES and name not in COLMAP_LENS_MODELS:
         raise DataError(
-            f"{model_dir}: camera {camera_id} uses {model_name}; expected one of {sorted(_COLMAP_MODELS)} "
+            f"{model_dir}: camera {camera_id} uses {name}; expected one of {sorted(_PINHOLES + tuple(COLMAP_LENS_MODELS))} "
             "(undistort first, e.g. `colmap image_undistorter`)"
         )
-    if model_name not in ("SIMPLE_PINHOLE", "PINHOLE"):
-        extra = [float(cam.params[i]) for i in cam.extra_params_idxs()]
-        if any(abs(v) > 0 for v in extra):
-            notes.add(f"{model_name} distortion ignored (camera {camera_id}: {', '.join(f'{v:.3g}' for v in extra)})")
+    extra = [float(cam.params[i]) for i in cam.extra_params_idxs()]
+    lens = colmap_lens(name, extra)
+    if lens is None or undistort:
+        return lens
+    if lens.model == "fisheye":
+        raise DataError(f"{model_dir}: camera {camera_id} uses {name}, a fisheye that cannot pass for a pinhole; "
+                        "load with undistort=True (the default) or undistort first (`colmap image_undistorter`)")
+    notes.add(f"{name} distortion ignored (camera {camera_id}: {', '.join(f'{v:.3g}' for v in extra)})")
+    ignored.add(lens.name)
+    return None
 
 
-def _read_resized(path: Path, width: int | None, where: str) -> np.ndarray:
-    if not path.is_file():
-        raise DataError(f"{where}: image not found: {path}")
-    img = read_image(path)
-    h0, w0 = img.shape[:2]
-    new_w, new_h = target_size(w0, h0, width, where)
-    return resize_image(img, new_w, new_h)
+def _sparse_depth(im: Any, w2c: np.ndarray, xyz_of: dict, to_pixels, width: int, height: int) -> np.ndarray:
+    """[height, width] float32: z-depth of the 3-D points image ``im`` observes at their keypoints' pixels.
 
-
-def _sparse_depth(im: Any, w2c: np.ndarray, xyz_of: dict, sx: float, sy: float, width: int, height: int) -> np.ndarray:
-    """[height, width] float32: z-depth of the 3-D points image ``im`` observes at their keypoints' pixels."""
+    to_pixels: keypoints [N, 2] in the model's pixels -> pixel positions in the loaded image.
+    """
     depth = np.full((height, width), np.inf)
     obs = [(p.xy, p.point3D_id) for p in im.points2D if p.has_point3D()]
     if obs:
-        xy = np.array([o[0] for o in obs], dtype=np.float64)
+        uv = to_pixels(np.array([o[0] for o in obs], dtype=np.float64))
         pts = np.stack([xyz_of[o[1]] for o in obs])
         z = pts @ w2c[2, :3] + w2c[2, 3]
-        col = np.floor(xy[:, 0] * sx).astype(np.int64)
-        row = np.floor(xy[:, 1] * sy).astype(np.int64)
+        col = np.floor(uv[:, 0]).astype(np.int64)
+        row = np.floor(uv[:, 1]).astype(np.int64)
         ok = (z > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
         np.minimum.at(depth, (row[ok], col[ok]), z[ok])
     depth[np.isinf(depth)] = 0.0

@@ -17,6 +17,7 @@ from agent.data.views import DataError, Views
 __all__ = [
     "IMAGE_EXTENSIONS",
     "read_image",
+    "read_mask",
     "target_size",
     "resize_image",
     "resize_depth",
@@ -29,15 +30,9 @@ __all__ = [
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG", ".tif", ".tiff", ".bmp", ".webp")
 
 
-def read_image(path: Path) -> np.ndarray:
-    """Read an image as float32 [H, W, 3|4] in [0, 1], RGB(A) channel order."""
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise DataError(f"{path}: cannot be read as an image")
-    scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(img.dtype)
-    if scale is None and not np.issubdtype(img.dtype, np.floating):
-        raise DataError(f"{path}: unsupported pixel type {img.dtype}")
-    img = img.astype(np.float32) / (scale or 1.0)
+def read_image(path: str | Path) -> np.ndarray:
+    """Any 8/16-bit or float grey/RGB/RGBA file -> float32 [H, W, 3|4] straight colour in [0, 1], RGB(A) order."""
+    img = _read_unit(path)
     if img.ndim == 2:
         img = np.repeat(img[:, :, None], 3, axis=2)
     elif img.shape[2] == 1:
@@ -48,7 +43,29 @@ def read_image(path: Path) -> np.ndarray:
         img = img[:, :, [2, 1, 0, 3]]
     else:
         raise DataError(f"{path}: {img.shape[2]} channels, expected 1, 3 or 4")
-    return np.ascontiguousarray(np.clip(img, 0.0, 1.0))
+    return np.ascontiguousarray(img)
+
+
+def read_mask(path: str | Path) -> np.ndarray:
+    """A mask file (grey 0-255 or 0-65535, soft edges kept) -> float32 [H, W] in [0, 1], 1 = object.
+
+    Colour masks count by their grey level; an alpha channel of the mask file is not used.
+    """
+    m = _read_unit(path)
+    if m.ndim == 3:
+        m = m[:, :, 0] if m.shape[2] == 1 else cv2.cvtColor(np.ascontiguousarray(m[:, :, :3]), cv2.COLOR_BGR2GRAY)
+    return np.ascontiguousarray(m, dtype=np.float32)
+
+
+def _read_unit(path: str | Path) -> np.ndarray:
+    """A file's pixels as cv2 decodes them (BGR(A) order), float32 in [0, 1]."""
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise DataError(f"{path}: cannot be read as an image")
+    scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(img.dtype)
+    if scale is None and not np.issubdtype(img.dtype, np.floating):
+        raise DataError(f"{path}: unsupported pixel type {img.dtype}")
+    return np.clip(img.astype(np.float32) / (scale or 1.0), 0.0, 1.0)
 
 
 def target_size(width: int, height: int, target_width: int | None, where: str) -> tuple[int, int]:

@@ -8,12 +8,14 @@ One entry point, :func:`load_views`, looks at what it is given and picks the loa
   nerfstudio or instant-ngp conventions (:mod:`agent.data.transforms_json`);
 - a COLMAP sparse model (``sparse/0/`` or a folder with ``cameras``/``images``/``points3D`` as
   ``.bin`` or ``.txt``), read with pycolmap (:mod:`agent.data.colmap`);
+- an LLFF folder: ``poses_bounds.npy`` with ``images/`` and/or ``images_N/`` (:mod:`agent.data.llff`);
 - a folder of images only, handed to ``agent.data.sfm.run_sfm`` when that module is installed.
 
 Every loader returns the conventions of :mod:`agent.data.views` (OpenGL camera-to-world,
 per-view ``fx, fy, cx, cy`` with the pixel centre at ``u + 0.5``, z-depth with 0 = unknown,
-straight RGBA kept), and every failure the user can fix is a :class:`DataError` that names the
-file and says what was expected.
+straight RGBA kept, pinhole cameras: lens distortion is undone at load time), masks beside the
+images become alpha (:mod:`agent.data.masks`), and every failure the user can fix is a
+:class:`DataError` that names the file and says what was expected.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from typing import Any
 
 from agent.data.colmap import find_colmap_model, load_colmap
 from agent.data.images import IMAGE_EXTENSIONS, list_image_files, resize_views
+from agent.data.llff import POSES_BOUNDS, load_llff
 from agent.data.transforms_json import load_transforms
 from agent.data.views import EXPECTED_LAYOUTS, DataError, Views
 
@@ -36,6 +39,7 @@ __all__ = [
     # the loaders load_views picks from, importable from here as before
     "load_transforms",
     "load_colmap",
+    "load_llff",
     "find_colmap_model",
     "resize_views",
     "IMAGE_EXTENSIONS",
@@ -51,6 +55,7 @@ def load_views(
     images_dir: str | Path | None = None,
     sfm_cache_dir: str | Path | None = None,
     sfm: Any = None,
+    undistort: bool = True,
 ) -> Views:
     """Load ``source`` (a path or ``procedural[:k=v,...]``) as :class:`Views`.
 
@@ -61,6 +66,9 @@ def load_views(
     images_dir: where a COLMAP model's images are, when not next to the model.
     sfm_cache_dir: where SfM of an images-only folder keeps its result (default: not cached).
     sfm: the ``agent.data.sfm.SfmConfig`` of that SfM (default: its defaults).
+    undistort: undo lens distortion (OpenCV, at the native size, new pinhole intrinsics; see
+    :mod:`agent.data.lens`). False keeps the distorted images and ignores radial-tangential
+    distortion with a note (e.g. to measure what that costs); a fisheye is then an error.
     """
     if width is not None and (not isinstance(width, int) or width < 1):
         raise DataError(f"width must be a positive integer, got {width!r}")
@@ -76,17 +84,21 @@ def load_views(
         raise DataError(f"{path}: no such file or folder; {EXPECTED_LAYOUTS}")
     if path.is_file():
         if path.suffix.lower() == ".json":
-            return load_transforms(path, width=width, load_depth=load_depth)
+            return load_transforms(path, width=width, load_depth=load_depth, undistort=undistort)
         if path.stem in ("cameras", "images", "points3D") and path.suffix in (".bin", ".txt"):
-            return load_colmap(path.parent, width=width, load_depth=load_depth, images_dir=images_dir)
+            return load_colmap(path.parent, width=width, load_depth=load_depth, images_dir=images_dir, undistort=undistort)
+        if path.name == POSES_BOUNDS:
+            return load_llff(path.parent, width=width)
         raise DataError(f"{path}: not a dataset file; {EXPECTED_LAYOUTS}")
 
     for name in ("transforms.json", "transforms_train.json"):
         if (path / name).is_file():
-            return load_transforms(path / name, width=width, load_depth=load_depth)
+            return load_transforms(path / name, width=width, load_depth=load_depth, undistort=undistort)
     model = find_colmap_model(path)
-    if model is not None:
-        return load_colmap(model, width=width, load_depth=load_depth, images_dir=images_dir)
+    if model is not None:  # before LLFF: an LLFF folder's sparse/0 has the lens and the depth
+        return load_colmap(model, width=width, load_depth=load_depth, images_dir=images_dir, undistort=undistort)
+    if (path / POSES_BOUNDS).is_file():
+        return load_llff(path, width=width)
     images = list_image_files(path) or list_image_files(path / "images")
     if images:
         return _load_images_only(path, images, width=width, cache_dir=sfm_cache_dir, config=sfm)

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from agent.camera import w2c_opencv_to_c2w_opengl
+from agent.data.images import read_image, resize_image
 from agent.data.views import DataError, Views
 
 __all__ = ["SfmConfig", "run_sfm", "list_images", "read_image", "read_camera_file", "write_camera_file",
@@ -94,43 +95,12 @@ def list_images(image_dir: str | Path) -> list[Path]:
     return sorted(files, key=lambda p: _natural_key(p.name))
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """Any 8/16-bit grey/RGB/RGBA file -> float32 [H, W, 3|4] straight colour in [0, 1], RGB order."""
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise DataError(f"cannot read image {path}")
-    scale = 65535.0 if raw.dtype == np.uint16 else 255.0
-    img = raw.astype(np.float32) / scale
-    if img.ndim == 2:
-        img = np.repeat(img[:, :, None], 3, axis=2)
-    elif img.shape[2] == 3:
-        img = img[:, :, ::-1]
-    elif img.shape[2] == 4:
-        img = img[:, :, [2, 1, 0, 3]]
-    else:
-        raise DataError(f"{path}: unsupported channel count {img.shape[2]}")
-    return np.ascontiguousarray(img)
-
-
 def _composite(img: np.ndarray, background: float) -> np.ndarray:
     """[H, W, 3|4] -> [H, W, 3]: straight RGBA over a constant grey (white for the NeRF datasets)."""
     if img.shape[2] == 3:
         return img
     alpha = img[:, :, 3:4]
     return img[:, :, :3] * alpha + background * (1.0 - alpha)
-
-
-def _resize(img: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Area resize; RGBA is resized premultiplied so that edge colours do not bleed from the background."""
-    if img.shape[1] == width and img.shape[0] == height:
-        return img
-    if img.shape[2] == 4:
-        pre = np.concatenate([img[:, :, :3] * img[:, :, 3:4], img[:, :, 3:4]], axis=2)
-        pre = cv2.resize(pre, (width, height), interpolation=cv2.INTER_AREA)
-        alpha = pre[:, :, 3:4]
-        rgb = np.where(alpha > 1e-6, pre[:, :, :3] / np.maximum(alpha, 1e-6), 0.0)
-        return np.concatenate([np.clip(rgb, 0, 1), alpha], axis=2).astype(np.float32)
-    return cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
 
 
 def _fit_size(width: int, height: int, max_side: int) -> tuple[int, int]:
@@ -268,7 +238,7 @@ def _write_sfm_images(files: list[Path], img_dir: Path, config: SfmConfig) -> tu
             raise DataError(f"{f.name} is {img.shape[1]}x{img.shape[0]}, the others {size[0]}x{size[1]}: "
                             "one robot folder must hold images of one camera and size")
         w, h = _fit_size(size[0], size[1], config.max_image_size)
-        rgb = _resize(_composite(img, config.background), w, h)
+        rgb = resize_image(_composite(img, config.background), w, h)
         name = f.stem + ".png"
         if name in names:
             raise DataError(f"two images in {f.parent} share the stem {f.stem!r}")
@@ -508,7 +478,7 @@ def _output_images(reg_files: list[Path], width: int | None) -> tuple[np.ndarray
     h0, w0 = first.shape[:2]
     out_w = w0 if width is None else int(width)
     out_h = h0 if width is None else max(1, round(h0 * out_w / w0))
-    images = np.stack([_resize(first if i == 0 else read_image(f), out_w, out_h) for i, f in enumerate(reg_files)])
+    images = np.stack([resize_image(first if i == 0 else read_image(f), out_w, out_h) for i, f in enumerate(reg_files)])
     return images, (out_w, out_h)
 
 

@@ -10,32 +10,45 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import cv2
 import numpy as np
 import torch
 
 from agent.camera import focal_from_fov
-from agent.data.images import IMAGE_EXTENSIONS, read_image, resize_depth, resize_image, stack_images, target_size, unique_names
+from agent.data.frames import Pixels, distortion_meta, load_pixels, prepare_depth
+from agent.data.images import IMAGE_EXTENSIONS, stack_images, unique_names
+from agent.data.lens import Lens, transforms_lens
+from agent.data.masks import check_mask_paths, find_masks, masks_meta
 from agent.data.views import EXPECTED_LAYOUTS, DataError, Views
 
 __all__ = ["load_transforms"]
 
-_UNSUPPORTED_NS_MODELS = {"OPENCV_FISHEYE", "FISHEYE", "EQUIRECTANGULAR", "FOV", "THIN_PRISM_FISHEYE"}
+_UNSUPPORTED_NS_MODELS = {"FISHEYE", "EQUIRECTANGULAR", "FOV", "THIN_PRISM_FISHEYE", "FISHEYE624"}
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 
 
-def load_transforms(json_path: str | Path, *, width: int | None = None, load_depth: bool = True) -> Views:
+def load_transforms(json_path: str | Path, *, width: int | None = None, load_depth: bool = True,
+                    undistort: bool = True) -> Views:
     """Read a Blender / nerfstudio / instant-ngp ``transforms*.json``.
 
     Poses are OpenGL camera-to-world in all three formats and are kept in the file's units
     (instant-ngp's ``scale``/``offset``/``aabb_scale`` are rendering hints of that program and
     are only copied into ``meta``). ``file_path`` is relative to the json, with or without its
     extension. Images keep their alpha; frames without alpha get alpha 1 when others have it.
+    Masks (``mask_path``, or a ``masks/`` folder beside ``images/``) become alpha
+    (:mod:`agent.data.masks`); OPENCV and OPENCV_FISHEYE distortion is undone unless
+    ``undistort`` is False, when radial-tangential distortion is ignored with a note.
     """
     json_path = Path(json_path)
     top, frames = _read_json(json_path)
+    model = str(top.get("camera_model", "")).upper()
+    if not undistort and (model == "OPENCV_FISHEYE" or top.get("is_fisheye")):
+        raise DataError(f"{json_path}: camera_model {model or 'is_fisheye'} is not supported without undistortion; "
+                        "a fisheye cannot pass for a pinhole: load with undistort=True (the default)")
+    paths = [_frame_image(frame, i, json_path) for i, frame in enumerate(frames)]
+    masks, masks_from = _frame_masks(frames, paths, json_path)
     base = json_path.parent
     notes: set[str] = set()
     dinerf = top["dinerf"] if isinstance(top.get("dinerf"), dict) else {}  # written by `dinerf-agent split`
@@ -45,7 +58,7 @@ def load_transforms(json_path: str | Path, *, width: int | None = None, load_dep
     loaded: list[_Frame] = []
     depths: list[np.ndarray | None] = []
     for i, frame in enumerate(frames):
-        f = _read_frame(top, frame, i, json_path, width, notes)
+        f = _read_frame(top, frame, i, json_path, paths[i], masks[i] if masks else None, width, undistort, notes)
         if loaded and loaded[0].size != f.size:
             raise DataError(
                 f"inconsistent image sizes: {f.file_path} is {f.size[0]}x{f.size[1]} but {loaded[0].file_path} is "
@@ -57,7 +70,7 @@ def load_transforms(json_path: str | Path, *, width: int | None = None, load_dep
             dpath = base / str(dfp)
             if not dpath.is_file():
                 raise DataError(f"{f.where}: depth file not found: {dpath}")
-            depth = resize_depth(_read_depth_file(dpath, factor, f.where), *f.size, sparse=sparse_depth)
+            depth = prepare_depth(_read_depth_file(dpath, factor, f.where), f.pixels, sparse_depth, f.where)
         loaded.append(f)
         depths.append(depth)
 
@@ -65,14 +78,28 @@ def load_transforms(json_path: str | Path, *, width: int | None = None, load_dep
     if any(d is not None for d in depths):
         w, h = loaded[0].size
         depth_t = torch.from_numpy(np.stack([d if d is not None else np.zeros((h, w), np.float32) for d in depths]))
+    meta = _meta(json_path, top, frames, notes, sparse_depth, width)
+    _describe_pixels(meta, loaded, masks, masks_from)
     return Views(
-        images=torch.from_numpy(stack_images([f.image for f in loaded])),
+        images=torch.from_numpy(stack_images([f.pixels.image for f in loaded])),
         c2w=torch.from_numpy(np.stack([f.pose for f in loaded])).float(),
-        intrinsics=torch.tensor([f.intrinsics for f in loaded], dtype=torch.float32),
+        intrinsics=torch.tensor([f.pixels.intrinsics for f in loaded], dtype=torch.float32),
         names=unique_names([f.file_path for f in loaded]),
         depth=depth_t,
-        meta=_meta(json_path, top, frames, notes, sparse_depth, width),
+        meta=meta,
     )
+
+
+def _describe_pixels(meta: dict, loaded: list["_Frame"], masks: list[Path] | None, masks_from: str) -> None:
+    """``meta['masks']``, ``meta['distortion']`` and their notes: what was done to the pixels."""
+    if masks:
+        meta["masks"] = masks_meta(masks, masks_from)
+    done = [f.pixels.undistortion for f in loaded if f.pixels.undistortion is not None]
+    ignored = sorted({f.ignored for f in loaded if f.ignored})
+    distortion, notes = distortion_meta(done, ignored)
+    if distortion is not None:
+        meta["distortion"] = distortion
+        meta["notes"] = sorted(set(meta["notes"]) | set(notes))
 
 
 def _read_json(json_path: Path) -> tuple[dict, list]:
@@ -90,7 +117,7 @@ def _read_json(json_path: Path) -> tuple[dict, list]:
         raise DataError(f"{json_path}: no frames; expected a non-empty 'frames' list of {{file_path, transform_matrix}}")
     model = str(top.get("camera_model", "")).upper()
     if model in _UNSUPPORTED_NS_MODELS:
-        raise DataError(f"{json_path}: camera_model {model} is not supported; expected a pinhole model (PINHOLE, OPENCV)")
+        raise DataError(f"{json_path}: camera_model {model} is not supported; expected PINHOLE, OPENCV or OPENCV_FISHEYE")
     return top, frames
 
 
@@ -98,30 +125,61 @@ def _read_json(json_path: Path) -> tuple[dict, list]:
 class _Frame:
     file_path: str  # as written in the json
     where: str  # for error messages
-    image: np.ndarray  # [H, W, 3|4] at the target size
-    size: tuple[int, int]  # (W, H) at the target size
+    pixels: Pixels  # the image at the target size, its intrinsics, what was done to it
     pose: np.ndarray  # [4, 4] OpenGL c2w
-    intrinsics: tuple[float, float, float, float]  # fx, fy, cx, cy at the target size
+    ignored: str = ""  # the name of a lens distortion left in the image (undistort=False)
+
+    @property
+    def size(self) -> tuple[int, int]:  # (W, H) at the target size
+        return self.pixels.size
 
 
-def _read_frame(top: dict, frame: Any, i: int, json_path: Path, width: int | None, notes: set[str]) -> _Frame:
-    """One frame's image (downscaled to ``width``), pose and intrinsics; depth is read by the caller."""
+def _frame_image(frame: Any, i: int, json_path: Path) -> Path:
+    """The image file of frame ``i``, checked to exist; the frame is checked to be one."""
     where = f"{json_path.name}: frame {i}"
     if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
         raise DataError(f"{where}: expected an object with 'file_path' and 'transform_matrix'")
     fp = str(frame["file_path"])
-    where = f"{json_path.name}: frame {i} ({fp})"
     img_path = _resolve_image(json_path.parent, fp)
     if img_path is None:
-        raise DataError(f"{where}: image not found: {json_path.parent / fp} (also tried .png/.jpg/.jpeg)")
+        raise DataError(f"{where} ({fp}): image not found: {json_path.parent / fp} (also tried .png/.jpg/.jpeg)")
+    return img_path
+
+
+def _frame_masks(frames: list, paths: list[Path], json_path: Path) -> tuple[list[Path] | None, str]:
+    """The frames' masks: nerfstudio's ``mask_path`` (all frames or none), else a masks folder beside the images."""
+    named = [json_path.parent / str(f["mask_path"]) if f.get("mask_path") else None for f in frames]
+    labels = [f"frame {i} ({f['file_path']})" for i, f in enumerate(frames)]
+    masks = check_mask_paths(named, labels, f"{json_path.name}: ")
+    if masks is not None:
+        return masks, "mask_path"
+    return find_masks(paths, where=f"{json_path.name}: "), "folder"
+
+
+def _read_frame(top: dict, frame: dict, i: int, json_path: Path, img_path: Path, mask: Path | None,
+                width: int | None, undistort: bool, notes: set[str]) -> _Frame:
+    """One frame's pixels (masked, undistorted, downscaled to ``width``) and pose; depth is read by the caller."""
+    fp = str(frame["file_path"])
+    where = f"{json_path.name}: frame {i} ({fp})"
     pose = _check_pose(frame["transform_matrix"], where)
-    img = read_image(img_path)
-    h0, w0 = img.shape[:2]
-    fx, fy, cx, cy = _frame_intrinsics(top, frame, w0, h0, where, notes)
-    new_w, new_h = target_size(w0, h0, width, where)
-    sx, sy = new_w / w0, new_h / h0
-    img = resize_image(img, new_w, new_h)
-    return _Frame(fp, where, img, (new_w, new_h), pose, (fx * sx, fy * sy, cx * sx, cy * sy))
+    get = _getter(top, frame, where)
+    lens = _frame_lens(top, get, where)
+    ignored = ""
+    if lens is not None and not undistort:
+        notes.add("lens distortion ignored (" + ", ".join(k for k in _DISTORTION_KEYS if get(k)) + ")")
+        lens, ignored = None, lens.name
+    pixels = load_pixels(img_path, lambda w0, h0: _frame_intrinsics(get, w0, h0, where, notes), where=where,
+                         width=width, mask=mask, lens=lens)
+    return _Frame(fp, where, pixels, pose, ignored)
+
+
+def _frame_lens(top: dict, get: Callable[[str], float | None], where: str) -> Lens | None:
+    """The frame's lens distortion (None: a pinhole)."""
+    model = str(top.get("camera_model", "")).upper()
+    fisheye = bool(top.get("is_fisheye"))
+    if model != "OPENCV_FISHEYE" and not fisheye and not any(get(k) for k in _DISTORTION_KEYS):
+        return None
+    return transforms_lens(model, get, fisheye, where)
 
 
 def _meta(json_path: Path, top: dict, frames: list, notes: set[str], sparse_depth: bool, width: int | None) -> dict:
@@ -197,19 +255,25 @@ def _num(d: dict, key: str, where: str) -> float | None:
     return float(v)
 
 
-def _frame_intrinsics(top: dict, frame: dict, img_w: int, img_h: int, where: str, notes: set[str]) -> tuple[float, ...]:
-    """(fx, fy, cx, cy) at the image's native size; per-frame keys override top-level ones.
+def _getter(top: dict, frame: dict, where: str) -> Callable[[str], float | None]:
+    """``get(key)``: a number of the frame, else of the file (per-frame keys override top-level ones)."""
+
+    def get(key: str) -> float | None:
+        v = _num(frame, key, where)
+        return v if v is not None else _num(top, key, where)
+
+    return get
+
+
+def _frame_intrinsics(get: Callable[[str], float | None], img_w: int, img_h: int, where: str,
+                      notes: set[str]) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) at the image's native size.
 
     Precedence follows the formats: ``fl_x``/``fl_y`` (nerfstudio, instant-ngp) over
     ``camera_angle_x``/``camera_angle_y`` (Blender); a missing ``fl_y`` means square pixels; a
     missing ``cx``/``cy`` means the image centre. When the declared ``w``/``h`` differ from the
     image on disk (a downscaled copy of the images), the intrinsics are scaled to the image.
     """
-
-    def get(key: str) -> float | None:
-        v = _num(frame, key, where)
-        return v if v is not None else _num(top, key, where)
-
     decl_w, decl_h = get("w"), get("h")
     w = decl_w if decl_w else float(img_w)
     h = decl_h if decl_h else float(img_h)
@@ -233,11 +297,6 @@ def _frame_intrinsics(top: dict, frame: dict, img_w: int, img_h: int, where: str
         sx, sy = img_w / w, img_h / h
         fx, cx, fy, cy = fx * sx, cx * sx, fy * sy, cy * sy
         notes.add(f"declared size {int(w)}x{int(h)} differs from the images ({img_w}x{img_h}): intrinsics scaled")
-    for key in _DISTORTION_KEYS:
-        v = get(key)
-        if v:
-            notes.add("lens distortion ignored (" + ", ".join(k for k in _DISTORTION_KEYS if get(k)) + ")")
-            break
     return fx, fy, cx, cy
 
 

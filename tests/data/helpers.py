@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-SHARED_DATA = Path(__file__).resolve().parents[2].parent / "shared/data"
+# ../shared/data beside the repository; DINERF_SHARED_DATA points elsewhere (e.g. from a git worktree)
+SHARED_DATA = Path(os.environ.get("DINERF_SHARED_DATA") or Path(__file__).resolve().parents[2].parent / "shared/data")
 LEGO = SHARED_DATA / "nerf_synthetic/lego"
+MARYROSE = SHARED_DATA / "maryrose"
 
 
 def write_png(path: Path, img: np.ndarray) -> None:
@@ -64,8 +67,12 @@ def _qvec(rot: np.ndarray) -> np.ndarray:
     return np.array([w, x, y, z])
 
 
-def colmap_dataset(root, model="PINHOLE", params=(50.0, 52.0, 20.5, 14.5), w=40, h=30):
-    """A text model with 2 images and 6 points whose keypoints are their exact projections."""
+def colmap_dataset(root, model="PINHOLE", params=(50.0, 52.0, 20.5, 14.5), w=40, h=30, distorted_keypoints=False):
+    """A text model with 2 images and 6 points whose keypoints are their exact projections.
+
+    distorted_keypoints: project through the camera model with pycolmap (lens distortion
+    included) instead of the pinhole part of its parameters.
+    """
     rng = np.random.default_rng(0)
     points = rng.uniform(-0.5, 0.5, (6, 3))
     fx, fy, cx, cy = (params[0], params[0], params[1], params[2]) if model.startswith("SIMPLE") else params[:4]
@@ -81,6 +88,10 @@ def colmap_dataset(root, model="PINHOLE", params=(50.0, 52.0, 20.5, 14.5), w=40,
         lines.append(f"{i + 1} {' '.join(map(str, q))} {' '.join(map(str, t))} 1 img{i}.png")
         cam = points @ rot.T + t
         uv = np.stack([fx * cam[:, 0] / cam[:, 2] + cx, fy * cam[:, 1] / cam[:, 2] + cy], -1)
+        if distorted_keypoints:
+            import pycolmap
+
+            uv = pycolmap.Camera(model=model, width=w, height=h, params=list(params)).img_from_cam(cam)
         keypoints.append((uv, cam[:, 2]))
         lines.append(" ".join(f"{u} {v} {j + 1}" for j, (u, v) in enumerate(uv)) + " 3.0 4.0 -1")
         for j in range(len(points)):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import shutil
 import sys
 import types
 
@@ -78,7 +79,7 @@ def test_instant_ngp_top_level_intrinsics_declared_size_and_distortion(tmp_path)
            "depth_unit_scale_factor": 0.5}
     frames = [{"file_path": f"img/{i}.png", "transform_matrix": pose(5 * i, (0, i, 2))} for i in range(2)]
     write_json(tmp_path / "transforms.json", {**top, "frames": frames})
-    v = load_views(tmp_path)
+    v = load_views(tmp_path, undistort=False)  # distortion left in the images: intrinsics as declared
     assert v.intrinsics[0].tolist() == [20.0, 22.0, 6.0, 3.5]
     assert v.images.shape[-1] == 4 and bool((v.images[1, ..., 3] == 1).all()), "RGB frames get alpha 1 beside RGBA ones"
     assert any("distortion ignored" in n for n in v.meta["notes"])
@@ -160,7 +161,7 @@ def test_colmap_binary_model_downscaled_and_distortion_note(tmp_path):
     binary = tmp_path / "bin_model"
     binary.mkdir()
     rec.write_binary(str(binary))
-    v = load_views(binary, width=20, images_dir=tmp_path / "images")
+    v = load_views(binary, width=20, images_dir=tmp_path / "images", undistort=False)
     assert v.width == 20 and v.height == 15
     assert v.intrinsics[0].tolist() == pytest.approx([25.0, 25.0, 10.0, 7.5])
     assert any("SIMPLE_RADIAL distortion ignored" in n for n in v.meta["notes"])
@@ -172,7 +173,11 @@ def test_colmap_binary_model_downscaled_and_distortion_note(tmp_path):
 
 def test_colmap_unsupported_model_is_a_clear_error(tmp_path):
     colmap_dataset(tmp_path, model="OPENCV_FISHEYE", params=(50.0, 52.0, 20.5, 14.5, 0.1, 0.0, 0.0, 0.0))
-    with pytest.raises(DataError, match="OPENCV_FISHEYE.*undistort"):
+    with pytest.raises(DataError, match="OPENCV_FISHEYE.*undistort"):  # a fisheye cannot be ignored
+        load_views(tmp_path, undistort=False)
+    shutil.rmtree(tmp_path / "sparse")
+    colmap_dataset(tmp_path, model="FOV", params=(50.0, 52.0, 20.5, 14.5, 0.1))
+    with pytest.raises(DataError, match="uses FOV; expected one of .*OPENCV_FISHEYE.*undistort first"):
         load_views(tmp_path)
 
 
@@ -240,8 +245,8 @@ def test_unknown_layout_lists_what_was_expected_and_what_was_found(tmp_path):
          "NaN"),
         ({"camera_angle_x": 0.8, "frames": [{"file_path": "./train/r_0", "transform_matrix": [[1, 0], [0, 1]]}]},
          "must be 4x4"),
-        ({"camera_angle_x": 0.8, "camera_model": "OPENCV_FISHEYE", "frames": [{"file_path": "a", "transform_matrix": []}]},
-         "OPENCV_FISHEYE is not supported"),
+        ({"camera_angle_x": 0.8, "camera_model": "EQUIRECTANGULAR", "frames": [{"file_path": "a", "transform_matrix": []}]},
+         "EQUIRECTANGULAR is not supported"),
     ],
 )
 def test_malformed_transforms_json(tmp_path, content, message):
@@ -250,6 +255,15 @@ def test_malformed_transforms_json(tmp_path, content, message):
     path.write_text(content if isinstance(content, str) else __import__("json").dumps(content))
     with pytest.raises(DataError, match=message):
         load_views(tmp_path)
+
+
+def test_a_fisheye_without_undistortion_is_a_clear_error(tmp_path):
+    """OPENCV_FISHEYE is undone by default (tests/data/test_undistort.py); ignoring it is refused."""
+    write_png(tmp_path / "train/r_0.png", random_rgba(4, 4, 0))
+    content = {"camera_angle_x": 0.8, "camera_model": "OPENCV_FISHEYE", "frames": [{"file_path": "a", "transform_matrix": []}]}
+    write_json(tmp_path / "transforms.json", content)
+    with pytest.raises(DataError, match="OPENCV_FISHEYE is not supported"):
+        load_views(tmp_path, undistort=False)
 
 
 def test_inconsistent_image_sizes_name_both_images(tmp_path):
