@@ -186,9 +186,9 @@ def _pixel_rows(v) -> list[tuple[str, str]]:
                               f"{float(v.images[..., 3].mean()):.3f}"))
     else:
         rows.append(("masks", "no"))
-    distortion = v.meta.get("distortion")
-    if isinstance(distortion, dict):
-        rows.append(("distortion", f"{', '.join(distortion.get('models', []))}: {distortion.get('done')}"))
+    lens = v.meta.get("lens")
+    if isinstance(lens, dict):
+        rows.append(("distortion", f"{', '.join(lens.get('models', []))}: {lens.get('done')}"))
     else:
         rows.append(("distortion", "none (pinhole cameras)"))
     k = v.intrinsics

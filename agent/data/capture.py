@@ -149,8 +149,8 @@ def capture_warnings(views: Views, box_source: str) -> list[str]:
     if box_source == "cameras":
         out.append("scene box estimated from the cameras only (the frustum width where the optical axes meet): "
                    "check that it holds the whole scene")
-    distortion = views.meta.get("distortion")
-    if isinstance(distortion, dict) and not distortion.get("undistorted"):
-        out.append(f"lens distortion ignored ({', '.join(distortion.get('models', []))}): rays miss their pixels "
+    lens = views.meta.get("lens")
+    if isinstance(lens, dict) and not lens.get("undistorted"):
+        out.append(f"lens distortion ignored ({', '.join(lens.get('models', []))}): rays miss their pixels "
                    "towards the image edges")
     return out

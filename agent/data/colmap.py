@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from agent.camera import w2c_opencv_to_c2w_opengl
-from agent.data.frames import Pixels, distortion_meta, load_pixels
+from agent.data.frames import Pixels, lens_meta, load_pixels
 from agent.data.images import stack_images, unique_names
 from agent.data.lens import COLMAP_LENS_MODELS, Lens, colmap_lens
 from agent.data.masks import find_masks, masks_meta
@@ -78,9 +78,9 @@ def load_colmap(
     }
     if masks:
         meta["masks"] = masks_meta(masks)
-    distortion, lens_notes = distortion_meta([p.undistortion for p in pixels if p.undistortion is not None], sorted(ignored))
-    if distortion is not None:
-        meta["distortion"] = distortion
+    lens, lens_notes = lens_meta([p.undistortion for p in pixels if p.undistortion is not None], sorted(ignored))
+    if lens is not None:
+        meta["lens"] = lens
     meta["notes"] = sorted(notes | set(lens_notes))
     if width is not None:
         meta["width"] = width

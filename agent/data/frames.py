@@ -9,13 +9,16 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import torch
+
+from agent.camera import distortion_coeffs
 
 from agent.data.images import read_image, read_mask, resize_depth, resize_image, target_size
 from agent.data.lens import Lens, Undistortion, undistortion
 from agent.data.masks import apply_mask
-from agent.data.views import DataError
+from agent.data.views import DataError, Views
 
-__all__ = ["Pixels", "load_pixels", "prepare_depth", "distortion_meta"]
+__all__ = ["Pixels", "load_pixels", "prepare_depth", "lens_meta", "undistort_views"]
 
 Intrinsics = tuple[float, float, float, float]  # fx, fy, cx, cy
 
@@ -76,8 +79,8 @@ def prepare_depth(depth: np.ndarray, pixels: Pixels, sparse: bool, where: str) -
     return resize_depth(depth, *pixels.size, sparse=sparse)
 
 
-def distortion_meta(done: list[Undistortion], ignored: list[str]) -> tuple[dict | None, list[str]]:
-    """(``meta['distortion']``, notes) of a load that undid the lenses ``done`` and ignored ``ignored``.
+def lens_meta(done: list[Undistortion], ignored: list[str]) -> tuple[dict | None, list[str]]:
+    """(``meta['lens']``, notes) of a load that undid the lenses ``done`` and ignored ``ignored``.
 
     ``None`` when the cameras are pinholes. One note per distinct camera, which says what was done.
     """
@@ -94,3 +97,25 @@ def distortion_meta(done: list[Undistortion], ignored: list[str]) -> tuple[dict 
         "done": "undistorted at load (OpenCV), pinhole intrinsics replaced" if done else "ignored (undistort=False)",
     }
     return meta, notes
+
+
+def undistort_views(views: Views) -> Views:
+    """Views still as a lens recorded them (``meta["distortion"]``, e.g. the procedural lens) ->
+    pinhole views, undone as a loader undoes a dataset's lens (the same :func:`undistortion`)."""
+    coeffs = distortion_coeffs(views.meta.get("distortion"))
+    if coeffs is None:
+        return views
+    lens = Lens("radtan", coeffs, "OpenCV (recorded)")
+    done, images, depths, intr = [], [], [], []
+    for i in range(len(views)):
+        und = undistortion(tuple(float(x) for x in views.intrinsics[i]), views.width, views.height, lens)
+        done.append(und)
+        images.append(und.image(views.images[i].numpy()))
+        intr.append(und.intrinsics)
+        if views.depth is not None:
+            depths.append(und.depth(views.depth[i].numpy(), sparse=bool(views.meta.get("depth_sparse"))))
+    meta = {k: v for k, v in views.meta.items() if k != "distortion"}
+    meta["lens"], notes = lens_meta(done, [])
+    meta["notes"] = list(meta.get("notes", [])) + notes
+    return Views(torch.from_numpy(np.stack(images)), views.c2w, torch.tensor(intr, dtype=torch.float32),
+                 list(views.names), torch.from_numpy(np.stack(depths)) if depths else None, meta)

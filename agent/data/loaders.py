@@ -76,8 +76,10 @@ def load_views(
     if (text == "procedural" or text.startswith("procedural:")) and not Path(text).exists():
         from agent.data.procedural import procedural_views
 
-        cfg = parse_procedural_spec(text, width=width)
-        return procedural_views(cfg)
+        from agent.data.frames import undistort_views
+
+        views = procedural_views(parse_procedural_spec(text, width=width))
+        return undistort_views(views) if undistort else views  # its lens undone as a dataset's would be
 
     path = Path(source).expanduser()
     if not path.exists():

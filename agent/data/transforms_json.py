@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from agent.camera import focal_from_fov
-from agent.data.frames import Pixels, distortion_meta, load_pixels, prepare_depth
+from agent.data.frames import Pixels, lens_meta, load_pixels, prepare_depth
 from agent.data.images import IMAGE_EXTENSIONS, stack_images, unique_names
 from agent.data.lens import Lens, transforms_lens
 from agent.data.masks import check_mask_paths, find_masks, masks_meta
@@ -96,9 +96,9 @@ def _describe_pixels(meta: dict, loaded: list["_Frame"], masks: list[Path] | Non
         meta["masks"] = masks_meta(masks, masks_from)
     done = [f.pixels.undistortion for f in loaded if f.pixels.undistortion is not None]
     ignored = sorted({f.ignored for f in loaded if f.ignored})
-    distortion, notes = distortion_meta(done, ignored)
-    if distortion is not None:
-        meta["distortion"] = distortion
+    lens, notes = lens_meta(done, ignored)
+    if lens is not None:
+        meta["lens"] = lens
         meta["notes"] = sorted(set(meta["notes"]) | set(notes))
 
 

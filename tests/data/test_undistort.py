@@ -102,7 +102,7 @@ def test_radial_tangential_is_undone_to_the_pinhole_projection(tmp_path):
     print(f"OPENCV: {len(errs)} dots, error mean {errs.mean():.3f} max {errs.max():.3f} px")
     assert len(errs) >= 15 and errs.max() < 0.1, errs
     assert v.images.shape == (1, H, W, 3) and float(v.images.min()) > 0.15, "every pixel has a source: no black border"
-    assert v.meta["distortion"]["undistorted"] and any("lens distortion undone" in n for n in v.meta["notes"])
+    assert v.meta["lens"]["undistorted"] and any("lens distortion undone" in n for n in v.meta["notes"])
     assert not any("distortion ignored" in n for n in v.meta["notes"])
 
     small = load_views(tmp_path, width=48)  # undistorted at 96 px, then downscaled
@@ -118,7 +118,7 @@ def test_undistort_false_keeps_the_distortion_and_says_so(tmp_path):
     assert v.intrinsics[0].tolist() == pytest.approx(K)
     assert np.abs(v.images[0].numpy() - np.round(img * 255) / 255).max() < 1e-6, "the image as it is on disk"
     assert any("lens distortion ignored (k1, k2, p1, p2)" in n for n in v.meta["notes"])
-    assert v.meta["distortion"] == {"models": ["nerfstudio OPENCV"], "undistorted": False, "done": "ignored (undistort=False)"}
+    assert v.meta["lens"] == {"models": ["nerfstudio OPENCV"], "undistorted": False, "done": "ignored (undistort=False)"}
     errs = dot_errors(v.images[0].numpy(), v.intrinsics[0].tolist())
     print(f"OPENCV ignored: error mean {errs.mean():.3f} max {errs.max():.3f} px")
     assert errs.max() > 1.0  # what ignoring it costs: the rays miss their dots by pixels
@@ -132,7 +132,7 @@ def test_fisheye_is_undone_to_the_pinhole_projection(tmp_path):
     print(f"OPENCV_FISHEYE: {len(errs)} dots, error mean {errs.mean():.3f} max {errs.max():.3f} px")
     assert len(errs) >= 10 and errs.max() < 0.1, errs
     assert float(v.images.min()) > 0.15
-    assert v.meta["distortion"]["models"] == ["nerfstudio OPENCV_FISHEYE"]
+    assert v.meta["lens"]["models"] == ["nerfstudio OPENCV_FISHEYE"]
 
 
 def test_mask_alpha_and_depth_are_undistorted_with_the_image(tmp_path):
@@ -199,7 +199,7 @@ def test_colmap_lenses_are_undone_with_their_sparse_depth(tmp_path, model, param
     errs = dot_errors(v.images[0].numpy(), v.intrinsics[0].tolist())
     print(f"COLMAP {model}: {len(errs)} dots, error mean {errs.mean():.3f} max {errs.max():.3f} px")
     assert len(errs) >= 10 and errs.max() < 0.1, errs
-    assert v.meta["distortion"] == {"models": [f"COLMAP {model}"], "undistorted": True,
+    assert v.meta["lens"] == {"models": [f"COLMAP {model}"], "undistorted": True,
                                     "done": "undistorted at load (OpenCV), pinhole intrinsics replaced"}
     # the sparse depth sits where the pinhole camera projects each 3-D point
     from agent.camera import project_points
@@ -211,3 +211,14 @@ def test_colmap_lenses_are_undone_with_their_sparse_depth(tmp_path, model, param
         col, row = uv[:, 0].floor().long(), uv[:, 1].floor().long()
         assert torch.allclose(v.depth[i][row, col].double(), depth, rtol=1e-5)
         assert int((v.depth[i] > 0).sum()) == len(set(zip(col.tolist(), row.tolist())))
+
+
+def test_a_procedural_lens_is_undone_as_a_datasets_would_be():
+    """The in-memory procedural capture with a lens goes through the loaders' undistortion too."""
+    from agent.data.loaders import load_views
+
+    raw = load_views("procedural:views=2,width=32,room=1,k1=0.06", undistort=False)
+    v = load_views("procedural:views=2,width=32,room=1,k1=0.06")
+    assert raw.meta["distortion"]["k1"] == 0.06 and "distortion" not in v.meta
+    assert v.meta["lens"]["undistorted"] and any("lens distortion undone" in n for n in v.meta["notes"])
+    assert float(v.intrinsics[0, 0]) != float(raw.intrinsics[0, 0]) and v.images.shape == raw.images.shape

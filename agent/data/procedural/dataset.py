@@ -34,7 +34,6 @@ def procedural_views(cfg: ProceduralConfig | None = None) -> Views:
     }
     if cfg.distortion is not None:
         meta["distortion"] = dict(zip(DISTORTION_KEYS, cfg.distortion))
-        meta["notes"].append("images as a distorting lens records them (OpenCV k1, k2, p1, p2 in meta['distortion'])")
     return Views(
         images=rgba[..., :3].contiguous() if cfg.room else rgba,
         c2w=c2w,
