@@ -25,7 +25,7 @@ from torch import Tensor
 class ConsensusConfig:
     """rho against the scale of the data term. The RGB loss is a *mean* over rays, so one hash
     entry's data gradient is ~1e-5; a penalty gradient 2 rho (theta - a) above that pins every
-    robot to the round's anchors and learning stops (rho = 1e-2: PSNR frozen at 14 dB). With
+    robot to the round's anchors and learning stops (docs/results.md). With
     rho ~ 1e-5 the data term leads where a robot has data, and entries it never sees still
     follow its neighbours (Adam's steps do not depend on the gradient's scale).
     """

@@ -64,9 +64,7 @@ class DaemonConfig:
     keep_rounds: bool = False  # also save rounds/<k>.pt (field + pose) for per-round reports
     join_timeout_s: float = 5.0  # query timeout for neighbours' newest snapshots
     pull_after_s: float = 2.0  # a neighbour's snapshot missing this long is asked for (pulled; PullPacing)
-    # The barrier stops waiting for a neighbour that sent nothing (heartbeat, snapshot) for this
-    # long, even if its token is still seen (see LastHeard: Zenoh can keep it for 10-20 s).
-    silent_after_s: float = 3.0
+    silent_after_s: float = 3.0  # the barrier stops waiting for a neighbour that sent nothing for this long, token or not
     # A robot that finds its neighbours this many rounds ahead when it comes back (restart, skip
     # after a freeze or a cut) takes their mean model instead of its own, and forgets its duals:
     # its own is stale, and C-ADMM would pull the neighbours back towards it. 0 = keep its own.

@@ -27,20 +27,8 @@ class PoseConfig:
     lr_scale: float = 1e-3  # log-scale per step (sim3 only)
     start_step: int = 0  # the pose waits this many steps for the shared field to form
     decay_to: float = 0.1  # pose lr decays geometrically to this fraction at the end
-    lr_factor_from_estimate: float = 0.1  # pose lrs x this when the start came from an estimate
-    # (the coarse alignment): Adam moves ~lr per step whatever the gradient, so a start already
-    # within ~0.1 deg is shaken loose by full-size steps against a young field. Measured on 3
-    # lego offsets, 250 joint steps: B's camera error 0.0085-0.0135 with 1.0, 0.0071-0.0077 with 0.1
-    # When the estimate states its rotation 1-sigma, the pose lrs are instead set so that over the
-    # whole run the pose can travel at most this many sigma (never above 1x). Adam steps ~lr along
-    # any gradient of steady sign, however weak: under the weak consensus penalty a robot's field
-    # and pose trade off, and against a young field that steady push is a bias, not information.
-    # Measured on lego (250 joint steps): from a start 0.007 deg off, 0.116 deg after with 0.1x,
-    # 0.086 deg with lrs at 0.1 sigma per step (a travel of ~6 sigma), 0.041 deg within 2 sigma;
-    # over 20 offsets, 20/20 within 1 deg / 0.02 units (README). A travel of a few sigma still
-    # lets the pose correct the estimate by what it says it may be wrong.
-    travel_sigmas: float = 2.0
-
+    lr_factor_from_estimate: float = 0.1  # pose lrs x this from an estimate without a sigma: full Adam steps shake it loose
+    travel_sigmas: float = 2.0  # from an estimate with a rotation sigma: the whole run moves the pose at most this many sigma
 
 
 class RelativePose(nn.Module):

@@ -67,21 +67,9 @@ class TransportConfig:
     connect: list[str] = field(default_factory=list)
     multicast_scouting: bool = False
     lease_ms: int = 2000
-    # A put with BLOCK waits at most this long for room in a link's queue, then Zenoh closes the
-    # link. None: half the lease. It must stay below the lease: while a put waits on a cut link,
-    # the whole Zenoh session stops sending (keep-alives included), so with Zenoh's default of
-    # 5 s the healthy links' leases ran out too and they flapped for seconds (measured: 1 s
-    # lease, a ring with one link cut; the healed link then stayed unused for 7 rounds). A slow
-    # but live link frees a queue slot well within it.
+    # BLOCK put's wait for queue room before Zenoh closes the link; None: half the lease (a blocked put stops all keep-alives)
     block_wait_before_close_ms: int | None = None
-    # Threads of Zenoh's receiving and sending runtimes (Zenoh's defaults: 2 and 1). Zenoh sets
-    # SO_LINGER to 10 s on its TCP sockets, so closing the socket of a cut link, which still
-    # holds unsent data, blocks the closing thread for up to 10 s. Both ends dial each other, so
-    # a cut link closes two sockets: with 2 receive threads both were stuck in close() (seen in
-    # gdb) and every healthy link stopped receiving too; all robots of a ring with one link cut
-    # waited 8-10 s in the same round. The receive threads are set through ZENOH_RUNTIME before
-    # the first session opens (an operator's own ZENOH_RUNTIME wins). The stuck closes seen were
-    # all on receive threads; the send threads are raised as a precaution (not measured).
+    # Zenoh's rx/tx runtime threads (its defaults 2, 1): closing a cut link's socket blocks one for 10 s (SO_LINGER)
     rx_threads: int = 8
     tx_threads: int = 4
     # Reconnect backoff for configured endpoints after a session is lost (a healed link is

@@ -62,15 +62,10 @@ class SfmConfig:
     background: float = 1.0  # RGBA images are composited onto this grey level before SfM
     min_registered: int = 3  # fewer registered images than this is an error ...
     min_registered_fraction: float = 0.3  # ... and so is fewer than this fraction of the images
-    structure_less_fallback: bool = False  # COLMAP 4's 2-D-only registration fallback; it placed
-    # lego views mirrored through the object (178 deg off), so it is off by default
+    structure_less_fallback: bool = False  # COLMAP 4's 2-D-only registration fallback: it placed views mirrored
     abs_pose_min_inliers: int = 30  # COLMAP's default; 15 let planar-ambiguity (mirrored) poses in
-    # COLMAP's defaults. 1.5 px / 3 deg brought lego's cameras closer to the truth (median rotation
-    # after a Sim(3) fit 0.153 / 0.214 -> 0.147 / 0.139 deg; focal 1.1 / 2.3% -> 1.0 / 1.6% short),
-    # but the lego images-only swarm on them scored no better: 30.13 / 29.74 dB held out against
-    # 30.19 / 30.06 (one run each, README), so the defaults stay.
-    filter_max_reproj_error: float = 4.0  # px: observations off by more are dropped during mapping
-    filter_min_tri_angle: float = 1.5  # deg: points triangulated at a smaller angle are dropped
+    filter_max_reproj_error: float = 4.0  # px, COLMAP's default: observations off by more are dropped during mapping
+    filter_min_tri_angle: float = 1.5  # deg, COLMAP's default: points triangulated at a smaller angle are dropped
     depth_min_track_length: int = 2  # SfM points seen by fewer images do not enter the depth prior
     depth_max_reproj_error: float = 2.0  # px; nor do points with a larger mean reprojection error
     max_runtime_seconds: int = -1  # mapper time limit, -1 = none
