@@ -22,7 +22,7 @@ def baseline(
     steps: int = typer.Option(2000, help="Optimiser steps."),
     width: int = typer.Option(None, help="Downscale images to this width."),
     test_every: int = typer.Option(8, help="Test views 0, k, 2k, ... are held out for evaluation; 0 = none."),
-    config: Path = typer.Option(None, "--config", help="TOML file with a [train] table."),
+    config: Path = typer.Option(None, "--config", help="TOML file with a \\[train] table."),
     overrides: list[str] = typer.Option([], "--set", help=SET_HELP),
     threads: int = typer.Option(2, help="CPU threads for torch."),
     renders: int = typer.Option(4, help="How many held-out views to save as PNG (prediction | truth)."),

@@ -121,10 +121,8 @@ def read_camera_file(folder: str | Path) -> dict | None:
 
     A robot usually knows its camera (a factory or checkerboard calibration) even when it knows
     none of its poses. SfM then starts from that focal length, and keeps it fixed unless the file
-    says ``"fixed": false``. Robots that each guess their own focal length end up 1-3% apart on
-    lego, which no Sim(3) between their frames can absorb; with the file, two lego robots' frames
-    agreed 10 times better in camera position (the swarm's PSNR did not change, measured before the
-    field box stopped clipping the scene; not re-run since).
+    says ``"fixed": false``. Robots that each guess their own focal length end up 1-3% apart,
+    which no Sim(3) between their frames can absorb (docs/results.md, images-only lego).
     """
     path = Path(folder) / CAMERA_FILE
     if not path.is_file():

@@ -1,6 +1,6 @@
 """Multiresolution hash encoding (instant-NGP) laid out for speed on the CPU.
 
-What made it fast here (DESIGN.md, "NeRF facts", and measurements in this module's history):
+What made it fast here (docs/design.md, "NeRF facts"):
 the point index is the innermost dimension (``[L, 8, N]``), indices are built per axis and
 combined (the dense and hashed indices are both separable), and the table lookup is a small
 custom autograd function whose backward is a ``scatter_add_`` rather than advanced indexing.
