@@ -167,7 +167,7 @@ class Daemon:
         self.membership = self.presence.membership
         self.exchange = SnapshotExchange(network, self.keys, robot_id, self.membership.neighbours, self.mailbox,
                                          self.presence.last_heard, cfg.exchange_timing(), self._stop, self.report.say,
-                                         self.report.event, self.report.reject)
+                                         self.report.event, self.report.reject, self._claimed_round)
         initial = Alignment.IDENTITY if cfg.initial_pose == "identity" else Alignment.PENDING
         with torch.no_grad():
             self.board = StatusBoard(alignment=initial, alignment_detail="",
@@ -190,6 +190,11 @@ class Daemon:
             max_decompressed_bytes=self.spec.num_values * 4 + (1 << 20))
 
     # ------------------------------------------------------------------ callbacks
+    def _claimed_round(self, j: int) -> int | None:
+        """The round neighbour j says, in its newest heartbeat, that it has completed."""
+        status = self.board.peers().get(j)
+        return None if status is None else status.round
+
     def _membership_changed(self, m: Membership) -> None:
         self.mailbox.notify()
         self.report.event("membership", alive=sorted(m.alive), reference=m.reference, epoch=m.epoch)
@@ -375,14 +380,21 @@ class Daemon:
         self.exchange.publish(msg, self.spec, self.cfg.wire_dtype, self.cfg.compression)
 
     def _join_current_round(self) -> None:
-        """Late join / restart: fetch the neighbours' newest snapshots and move to their round."""
+        """Late join / restart: fetch the neighbours' newest snapshots and move to their round.
+
+        A snapshot counts only up to the round its sender's own heartbeat says it has completed,
+        and the round joined is the one the neighbours agree on (the lower median): no single
+        answer, forged or not, can move a robot to another round."""
         newest: dict[int, ThetaSnapshot] = {}
         for j in sorted(self.presence.reachable()):
-            if (msg := self.exchange.fetch_latest(j)) is not None:
+            claim = self._wait_for_claim(j)
+            if claim is not None and (msg := self.exchange.fetch_latest(j, at_most=claim)) is not None:
                 newest[j] = msg
         if not newest:
             return
-        target = max(m.round for m in newest.values())
+        # the round the neighbours agree on (the lower median): one reply cannot move us alone
+        rounds = sorted(m.round for m in newest.values())
+        target = min(rounds[(len(rounds) - 1) // 2], self.training.rounds)
         if target > self.round:
             fresh_start = self.round == 0 and self.trainer.step == 0
             adopt = fresh_start or self._is_stale(target)
@@ -396,6 +408,13 @@ class Daemon:
         for j, m in newest.items():
             if m.round >= self.round:
                 self.exchange.offer_quietly(j, m)
+
+    def _wait_for_claim(self, j: int) -> int | None:
+        """j's claimed round, waiting a few heartbeats for its first status if none came yet."""
+        deadline = time.monotonic() + 4 * self.cfg.heartbeat_s
+        while (claim := self._claimed_round(j)) is None and time.monotonic() < deadline and not self._stop.is_set():
+            time.sleep(0.05)
+        return claim
 
     def _is_stale(self, target: int) -> bool:
         return self.cfg.adopt_after_rounds > 0 and target - self.round >= self.cfg.adopt_after_rounds
@@ -414,7 +433,7 @@ class Daemon:
         snapshot. Training through costs no steps; skipping keeps it from timing out round after
         round when training through would take too long (``plan_catch_up``).
         """
-        newest = {j: self.mailbox.newest_round(j) for j in self.presence.reachable()}
+        newest = {j: self.exchange.credible_round(j, self.round) for j in self.presence.reachable()}
         plan = plan_catch_up(self.round, newest, self._round_compute_s, self.cfg.round_timeout_s / 2)
         if plan is None:
             return heard

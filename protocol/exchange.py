@@ -208,9 +208,12 @@ class SnapshotExchange:
 
     def __init__(self, net: Network, keys: Keys, robot_id: int, neighbours: frozenset[int],
                  mailbox: Mailbox[ThetaSnapshot], last_heard: LastHeard, timing: ExchangeTiming,
-                 stop: threading.Event, log: Log, event: Event, reject: Reject) -> None:
+                 stop: threading.Event, log: Log, event: Event, reject: Reject,
+                 claimed_round: Callable[[int], int | None] = lambda j: None) -> None:
+        """claimed_round(j): the round neighbour j says it has completed (its newest heartbeat)."""
         self.net, self.keys, self.robot_id, self.neighbours = net, keys, robot_id, neighbours
         self.mailbox, self.last_heard, self.timing, self._stop = mailbox, last_heard, timing, stop
+        self._claimed_round = claimed_round
         self._log, self._event, self._reject = log, event, reject
         self.expect: codec.Expectation | None = None  # None: our model is provisional, take nothing
         self._pacing = PullPacing(timing.pull_after_s, timing.round_timeout_s / 4)
@@ -270,6 +273,7 @@ class SnapshotExchange:
             if parsed.receiver != self.robot_id:
                 raise Rejected("bad_kind", f"snapshot addressed to robot {parsed.receiver}")
             msg = codec.decode(data, expect, kind="theta", key=parsed)
+            self._check_horizon(msg)
             self.last_heard.heard(msg.sender)
             self.mailbox.offer(msg.sender, msg.round, msg)
             barrier_round, began = self._barrier_began
@@ -280,25 +284,69 @@ class SnapshotExchange:
         except ValueError as e:  # a foreign key on our subscription
             self._reject("garbage", f"{key}: {e}")
 
-    def fetch_latest(self, j: int, block: bool = True, min_round: int = 0) -> ThetaSnapshot | None:
-        """Neighbour j's newest snapshot if of ``min_round`` or later, from its ``latest``
-        queryable, validated; None if none came."""
+    def _check_horizon(self, msg: ThetaSnapshot) -> None:
+        """A pushed snapshot may be at most one round past what its sender last said it has
+        completed (its next snapshot races its next heartbeat). Further ahead nobody vouches for
+        it, and taken in first it would shut out the real one (the mailbox keeps the first copy):
+        refused, and the barrier pulls the real snapshot once the sender says it has it."""
+        last = self.mailbox.last_round
+        if last is not None and msg.round > last:
+            raise Rejected("too_far_ahead", f"round {msg.round} from {msg.sender}, the last round is {last}")
+        claim = self._claimed_round(msg.sender)
+        horizon = max(self.mailbox.current_round, claim if claim is not None else -1) + 1
+        if msg.round > horizon:
+            raise Rejected("ahead_of_sender", f"round {msg.round} from {msg.sender}, which says it has "
+                                              f"completed {claim}")
+
+    def fetch_latest(self, j: int, block: bool = True, min_round: int = 0,
+                     at_most: int | None = None) -> ThetaSnapshot | None:
+        """Neighbour j's newest snapshot of a round in [``min_round``, ``at_most``], from its
+        ``latest`` queryable, validated; None if none came. Should several answers come (a forged
+        queryable answers too), the one of the earliest round: joining low costs a catch-up,
+        joining at a forged round would cost the whole run."""
         if self.expect is None:
             return None
-        data = self.net.query(self.keys.latest_since(j, min_round), timeout=self.timing.join_timeout_s, block=block)
-        if data is None:
-            return None
+        replies = self.net.query_all(self.keys.latest_since(j, min_round), timeout=self.timing.join_timeout_s,
+                                     block=block)
+        valid = [m for key, data in replies if (m := self._latest_reply(j, key, data)) is not None
+                 and (at_most is None or m.round <= at_most)]
+        return min(valid, key=lambda m: m.round, default=None)
+
+    def _latest_reply(self, j: int, key: str, data: bytes) -> ThetaSnapshot | None:
         try:
+            if key != self.keys.latest(j):
+                raise Rejected("sender_mismatch", f"asked robot {j}'s latest, the reply is on {key[:120]!r}")
             msg = codec.decode(data, self.expect, kind="theta")
+            if msg.sender != j:
+                raise Rejected("sender_mismatch", f"asked robot {j}, the reply says robot {msg.sender}")
+            last = self.mailbox.last_round
+            if last is not None and msg.round > last:
+                raise Rejected("too_far_ahead", f"round {msg.round}, the last round is {last}")
         except Rejected as e:
             self._reject(e.reason, f"latest of robot {j}: {e.detail}")
             return None
-        return msg if msg.sender == j else None
+        return msg
+
+    def claimed_round(self, j: int) -> int | None:
+        """The round neighbour j says, in its newest heartbeat, that it has completed."""
+        return self._claimed_round(j)
+
+    def credible_round(self, j: int, round_index: int) -> int | None:
+        """The newest round of j's snapshots we hold, up to what j's own heartbeat says it has
+        completed (at least our round k: a round-k snapshot is what the barrier waits for).
+
+        A snapshot from the future alone never ends a wait, stands in for another round, nor
+        makes a robot skip rounds: j that passed our round without us says so in its heartbeat.
+        """
+        claim = self._claimed_round(j)
+        return self.mailbox.newest_round(j, at_most=max(round_index, claim if claim is not None else -1))
 
     def pull_latest(self, j: int, min_round: int) -> None:
         """Fetch neighbour j's newest snapshot into the mailbox if it is not older than min_round."""
         # block=False: the link to j may be dying (see ZenohTransport.query)
-        msg = self.fetch_latest(j, block=False, min_round=min_round)
+        claim = self._claimed_round(j)
+        msg = self.fetch_latest(j, block=False, min_round=min_round,
+                                at_most=max(min_round, claim if claim is not None else -1))
         if msg is not None and msg.round >= min_round:
             self.offer_quietly(j, msg)
             self._pacing.pulled(j, msg.round)
@@ -339,9 +387,9 @@ class SnapshotExchange:
             self._log(f"round {round_index}: no snapshot from {sorted(got.missing)} "
                       f"within {self.timing.round_timeout_s:.0f} s; going on with {sorted(got.items)}")
         items = dict(got.items)
-        newest_of = self.mailbox.newest_items()
         for j in reachable() - items.keys():
-            newest = newest_of.get(j)
+            r = self.credible_round(j, round_index)
+            newest = self.mailbox.newest_item(j, at_most=r) if r is not None else None
             if newest is not None and newest[0] > round_index:
                 items[j] = newest[1]
                 self._event("ahead", sender=j, snapshot_round=newest[0])
@@ -354,7 +402,7 @@ class SnapshotExchange:
 
         def awaited() -> set[int]:
             missing = {j for j in reachable()
-                       if (r := self.mailbox.newest_round(j)) is None or r <= round_index}
+                       if (r := self.credible_round(j, round_index)) is None or r <= round_index}
             silent = self.last_heard.silent(missing, self.timing.silent_after_s)
             for j in silent - given_up:
                 given_up.add(j)

@@ -220,13 +220,28 @@ class LoopbackNetwork:
             return data
 
     def query(self, key: str, timeout: float | None = None, block: bool = True) -> bytes | None:
-        selector, _, params = key.partition("?")
+        replies = self.query_all(key, timeout, block, first_only=True)
+        return replies[0][1] if replies else None
+
+    def query_all(self, key_expr: str, timeout: float | None = None, block: bool = True,
+                  first_only: bool = False) -> list[tuple[str, bytes]]:
+        selector, _, params = key_expr.partition("?")
         wanted = min_round_of(dict(p.split("=", 1) for p in params.split(";") if "=" in p).get(MIN_ROUND_PARAM))
+        out = []
         for peer in self.hub.peers(self.robot_id):
-            if peer is not self and (data := peer._answer(selector, wanted)) is not None:
-                self._count_in(selector, len(data))
-                return data
-        return None
+            if peer is self:
+                continue
+            for key in peer._served_keys(selector):
+                if (data := peer._answer(key, wanted)) is not None:
+                    self._count_in(key, len(data))
+                    out.append((key, data))
+                    if first_only:
+                        return out
+        return out
+
+    def _served_keys(self, key_expr: str) -> list[str]:
+        with self._lock:
+            return [k for k in self._served if key_matches(key_expr, k)]
 
     # ------------------------------------------------------------------ counters
     def _kind_of(self, key: str) -> str:

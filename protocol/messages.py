@@ -73,6 +73,7 @@ REJECT_REASONS: dict[str, str] = {
     "non_finite": "NaN or infinity among the values",
     "stale_round": "round is older than the current one",
     "too_far_ahead": "round is past the swarm's last round",
+    "ahead_of_sender": "round is more than one past what its sender's heartbeat says it has completed",
 }
 
 

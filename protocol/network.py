@@ -44,6 +44,9 @@ class Network(Protocol):
     def query(self, key: str, timeout: float | None = None, block: bool = True) -> bytes | None:
         """The first reply to a get on ``key``, or None if nobody answered in time."""
 
+    def query_all(self, key_expr: str, timeout: float | None = None, block: bool = True) -> list[tuple[str, bytes]]:
+        """Every ``(key, data)`` reply to a get on ``key_expr`` (the key is the replier's)."""
+
     def stats(self) -> dict[str, Any]:
         """Traffic counters: ``bytes_in`` {sender: n}, ``bytes_out`` {kind: n}, their totals ..."""
 

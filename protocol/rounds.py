@@ -20,9 +20,10 @@ Rules:
   item per sender): a robot that fell far behind (frozen, cut off) learns where its neighbours
   are, can jump there, and finds the item in place on :meth:`advance` to that round;
 - a round past ``last_round`` (the swarm's last round, when given) is ``too_far_ahead`` and refused;
-- the same (sender, round) offered again **replaces** the earlier item: the newest copy is what
-  the sender now stands by (e.g. it re-ran the round after a restart). Items already returned
-  by :meth:`wait` are not affected.
+- the same (sender, round) offered again is ignored: the **first** valid copy is kept, so that
+  no later message can swap a snapshot already taken in (a replay, a forgery);
+- :meth:`newest_round` can be asked for the newest round *up to* a bound, so that a snapshot
+  from the far future, which no one can vouch for, never decides anything by itself.
 
 ``expected()`` is re-evaluated on every wake-up, since neighbours may die during the wait;
 :meth:`notify` wakes waiters when membership changes. ``expected`` is called without the
@@ -84,9 +85,9 @@ class Mailbox(Generic[T]):
             if self.last_round is not None and round > self.last_round:
                 raise Rejected("too_far_ahead", f"round {round} from {sender}, the last round is {self.last_round}")
             if round <= self._current + self.max_ahead:
-                self._items.setdefault(round, {})[sender] = item
+                self._items.setdefault(round, {}).setdefault(sender, item)
             newest = self._newest.get(sender)
-            if newest is None or round >= newest[0]:
+            if newest is None or round > newest[0]:
                 self._newest[sender] = (round, item)
             self._cond.notify_all()
 
@@ -135,11 +136,20 @@ class Mailbox(Generic[T]):
         with self._cond:
             return dict(self._items.get(round, {}))
 
-    def newest_round(self, sender: int) -> int | None:
-        """Newest round ever offered by ``sender`` (accepted offers only), or None."""
+    def newest_round(self, sender: int, at_most: int | None = None) -> int | None:
+        """Newest round offered by ``sender`` (accepted offers only), or None; with ``at_most``, the
+        newest of the rounds held that are not beyond it."""
+        found = self.newest_item(sender, at_most)
+        return None if found is None else found[0]
+
+    def newest_item(self, sender: int, at_most: int | None = None) -> tuple[int, T] | None:
+        """(round, item) of :meth:`newest_round`."""
         with self._cond:
-            newest = self._newest.get(sender)
-            return None if newest is None else newest[0]
+            held = [(r, per[sender]) for r, per in self._items.items() if sender in per]
+            if sender in self._newest:
+                held.append(self._newest[sender])
+            held = [h for h in held if at_most is None or h[0] <= at_most]
+            return max(held, key=lambda h: h[0], default=None)
 
     def newest_items(self) -> dict[int, tuple[int, T]]:
         """sender -> (round, item) of the newest accepted offer: for catching up after a restart."""

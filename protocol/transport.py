@@ -498,15 +498,19 @@ class ZenohTransport:
             return data
         return None
 
-    def query_all(self, key_expr: str, timeout: float | None = None) -> list[tuple[str, bytes]]:
-        """Every (key, data) reply to a get on ``key_expr`` (e.g. all robots' latest snapshots)."""
-        return list(self._get(key_expr, timeout, first_only=False, block=True))
+    def query_all(self, key_expr: str, timeout: float | None = None, block: bool = True) -> list[tuple[str, bytes]]:
+        """Every (key, data) reply to a get on ``key_expr`` (e.g. all robots' latest snapshots, or
+        every answer on one robot's key: a forged queryable answers too)."""
+        return list(self._get(key_expr, timeout, first_only=False, block=block))
 
     def _get(self, key_expr: str, timeout: float | None, first_only: bool, block: bool):
         congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         try:
+            # no consolidation: Zenoh would keep one reply per key, and a forged queryable's answer
+            # could be the one kept; every answer is seen and judged by the caller
             replies = self.session.get(key_expr, timeout=timeout or self.cfg.query_timeout_s,
-                                       target=zenoh.QueryTarget.ALL, congestion_control=congestion)
+                                       target=zenoh.QueryTarget.ALL, congestion_control=congestion,
+                                       consolidation=zenoh.ConsolidationMode.NONE)
         except Exception as exc:
             raise TransportError(f"get on {key_expr} failed: {exc}") from None
         for reply in replies:

@@ -87,11 +87,24 @@ def test_a_round_beyond_the_window_is_kept_as_the_newest_only():
     assert box.wait(9, lambda: {1}, timeout_s=0.05).complete
 
 
-def test_same_round_again_replaces():
+def test_the_first_copy_of_a_round_is_kept():
+    """A replay or a forgery of a (sender, round) already taken in changes nothing."""
     box = Mailbox(max_ahead=1)
     box.offer(1, 0, "first")
     box.offer(1, 0, "second")
-    assert box.items(0) == {1: "second"}
+    assert box.items(0) == {1: "first"}
+    box.offer(1, 5, "far")
+    box.offer(1, 5, "far again")
+    assert box.newest_items() == {1: (5, "far")}
+
+
+def test_the_newest_round_up_to_a_bound_ignores_the_far_future():
+    box = Mailbox(max_ahead=2)
+    box.offer(1, 1, "r1")
+    box.offer(1, 90, "forged")  # beyond the window: kept as newest only
+    assert box.newest_round(1) == 90
+    assert box.newest_round(1, at_most=3) == 1 and box.newest_item(1, at_most=3) == (1, "r1")
+    assert box.newest_round(1, at_most=0) is None and box.newest_round(2, at_most=5) is None
 
 
 def test_newest_round_and_items_for_catching_up():

@@ -80,12 +80,12 @@ class Swarm:
     def run_dir(self, i: int) -> Path:
         return self.root / "run" / f"robot{i}"
 
-    def start(self, i: int, extra_env: dict | None = None) -> subprocess.Popen:
+    def start(self, i: int, extra_env: dict | None = None, extra_args: list[str] = ()) -> subprocess.Popen:
         log = self.root / f"robot{i}.log"
         self.logs[i] = log
         env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1", **(extra_env or {}))
         cmd = AGENT + ["up", "--id", str(i), "--data", str(self.root / f"robot{i}"),
-                       "--run-dir", str(self.run_dir(i))]
+                       "--run-dir", str(self.run_dir(i)), *extra_args]
         p = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=open(log, "a"), stderr=subprocess.STDOUT)
         self.procs[i] = p
         return p

@@ -83,6 +83,44 @@ def test_a_rogue_peer_is_rejected_by_reason_and_changes_nothing(tmp_path):
         assert exact, f"robot {i}: the rogue changed theta (max diff {diff:.3e})"
 
 
+def test_well_formed_messages_cannot_steer_the_rounds(tmp_path):
+    """A rogue answers every latest query with forged far-future rounds (the last one too), copies
+    real snapshots into the future and replays them with other values: every robot still trains
+    every round and ends bit-identical to the clean run (the in-process simulation)."""
+    from cli.swarm_file import load_swarm_file
+    from tests.system.harness import free_port_base
+
+    swarm = make_swarm(tmp_path, robots=2, topology="full", training={"rounds": 6})
+    cfg, _ = load_swarm_file(swarm.swarm_file)
+    rogue_ep = f"tcp/127.0.0.1:{free_port_base(1) + 1}"
+    rogue = subprocess.Popen([sys.executable, str(REPO / "tests/system/hijack.py"), str(swarm.swarm_file), "90",
+                              rogue_ep], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert rogue.stdout.readline().strip() == "ready", rogue.stdout.read()
+        for i, j in ((1, 2), (2, 1)):  # each robot dials its neighbour and, unknowingly, the rogue
+            swarm.start(i, extra_args=["--connect", cfg.endpoint(j), "--connect", rogue_ep])
+        swarm.wait_all()
+    finally:
+        rogue.kill()
+        rogue_out = rogue.communicate()[0]
+        swarm.stop()
+    sent = json.loads([line for line in rogue_out.splitlines() if line.startswith('{"latest')][-1])
+    print(f"the rogue sent {sent}")
+    assert '"error"' not in rogue_out, rogue_out[-2000:]
+    assert sent["latest_answers"] > 0 and sent["future_copies"] > 0 and sent["replays"] > 0, sent
+    refused = {i: swarm.done(i)["rejected"] for i in swarm.robots}
+    print(f"refused by reason: {refused}")
+    assert any(r.get("ahead_of_sender") for r in refused.values()), refused  # the future copies
+    assert any(r.get("too_far_ahead") for r in refused.values()), refused  # the latest answer of round 1e6
+    sim = simulate(swarm)
+    for i in swarm.robots:
+        tel = swarm.telemetry(i)
+        assert [t.round for t in tel] == [1, 2, 3, 4, 5, 6] and all(t.steps == 8 for t in tel), (i, tel)
+        assert swarm.done(i)["rounds"] == 6
+        exact, diff = _field_equal(sim.robots[i].trainer, swarm.run_dir(i) / "checkpoint.pt")
+        assert exact, f"robot {i}: the rogue changed theta (max diff {diff:.3e})"
+
+
 def test_killing_a_non_reference_robot_the_others_finish_as_well_as_without_the_fault(tmp_path):
     swarm = make_swarm(tmp_path, robots=3, topology="full")
     try:

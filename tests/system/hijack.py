@@ -1,0 +1,117 @@
+"""A rogue that tries to steer a real swarm's rounds with well-formed messages (system tests).
+
+Run as ``python tests/system/hijack.py SWARM_TOML DURATION_S LISTEN``. It listens on LISTEN for
+the robots to connect to it as to a peer (plain TCP: the swarm under test is insecure, so the rogue
+can reach it), prints ``ready``, learns the model layout, and at once:
+
+- answers on every robot's ``latest`` queryable with a snapshot of that robot claiming round
+  1,000,000, and another claiming the swarm's last round (a robot that joins at the first reply
+  would train nothing and finish at once);
+- re-publishes every real snapshot it sees to the same receiver as copies from the far future
+  (round + 3 and + 6): a barrier that trusts them stops waiting, a robot skips its training;
+- re-publishes every real snapshot under its own round with other values (a replay that
+  replaces the copy already taken in would change the model).
+
+Forging another robot's *identity* is the transport's to refuse (TLS + access control); this
+rogue attacks the round logic only. Prints one JSON line per second with what it sent.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
+
+from protocol import codec  # noqa: E402
+from protocol.messages import ThetaSnapshot  # noqa: E402
+
+FUTURE = (3, 6)  # rounds ahead of a real snapshot its copies claim
+
+
+def main(swarm_toml: str, duration: float, listen: str) -> None:
+    from agent.daemon import model_spec
+    from agent.data.folder import read_scene
+    from agent.data.loaders import load_views
+    from agent.swarm import build_robot
+    from cli.swarm_file import load_swarm_file
+    from protocol.keys import Keys
+    from protocol.transport import TransportConfig, ZenohTransport
+
+    cfg, base = load_swarm_file(Path(swarm_toml))
+    ids = cfg.swarm.robots
+    scene = read_scene(base / cfg.swarm.scene)
+    setup = build_robot(ids[0], load_views(base / f"robot{ids[0]}"), scene.box_from_shared, cfg.training)
+    spec = model_spec(setup)
+    zeros = {n: np.zeros(t.shape, np.float32) for n, t in setup.trainer.theta().items()}
+    keys = Keys(cfg.swarm.name)
+    expect = codec.Expectation(cfg.swarm.name, spec=spec)
+    net = ZenohTransport(TransportConfig(listen=[listen]), keys, robot_id=max(ids) + 100).open()
+    sent = {"latest_answers": 0, "future_copies": 0, "replays": 0}
+    lock = threading.Lock()
+
+    def snapshot(j: int, k: int, tensors: dict) -> bytes:
+        return codec.encode(ThetaSnapshot(cfg.swarm.name, j, k, 0, spec.signature(), tensors), spec=spec)
+
+    def answer(j: int):
+        forged = [snapshot(j, 1_000_000, zeros), snapshot(j, cfg.training.rounds, zeros)]
+
+        def on_query(query) -> None:  # two forged answers to every query on robot j's latest
+            with query:
+                for data in forged:
+                    query.reply(keys.latest(j), data)
+            with lock:
+                sent["latest_answers"] += len(forged)
+        return on_query
+
+    queryables = [net.session.declare_queryable(keys.latest(j), answer(j)) for j in ids]
+
+    seen: set[tuple[int, int, int]] = set()  # (sender, round, to): our own copies come back to us too
+
+    def on_theta(key: str, data: bytes) -> None:  # runs on a Zenoh thread: hand over, never publish here
+        try:
+            parsed = keys.parse(key)
+            msg = codec.decode(data, expect, kind="theta", key=parsed)
+        except Exception:
+            return
+        with lock:
+            first = (msg.sender, msg.round, parsed.receiver) not in seen
+            seen.update((msg.sender, msg.round + d, parsed.receiver) for d in (0, *FUTURE))
+        if first:
+            threading.Thread(target=copy, args=(msg, parsed.receiver), daemon=True).start()
+
+    def copy(msg: ThetaSnapshot, to: int) -> None:
+        j, k = msg.sender, msg.round
+        try:
+            other = {n: a + 0.5 for n, a in msg.tensors.items()}
+            net.publish(keys.theta(j, k, to=to), snapshot(j, k, other))
+            with lock:
+                sent["replays"] += 1
+            for ahead in FUTURE:
+                if k + ahead <= cfg.training.rounds:
+                    net.publish(keys.theta(j, k + ahead, to=to), snapshot(j, k + ahead, msg.tensors))
+                    with lock:
+                        sent["future_copies"] += 1
+        except Exception as e:
+            print(json.dumps({"error": f"{type(e).__name__}: {e}"}), flush=True)
+
+    net.subscribe(keys.theta_all(), on_theta)
+    print("ready", flush=True)
+    t_end = time.monotonic() + duration
+    while time.monotonic() < t_end:
+        with lock:
+            print(json.dumps(sent), flush=True)
+        time.sleep(1.0)
+    for q in queryables:
+        q.undeclare()
+    net.close()
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], float(sys.argv[2]), sys.argv[3])
