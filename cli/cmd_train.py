@@ -30,6 +30,7 @@ def baseline(
     """Train one model on all views (the paper's centralised baseline); report PSNR/SSIM on held-out views."""
     import torch
 
+    from agent.checkpoint import CHECKPOINT, save_baseline
     from agent.evaluation import evaluate_heldout, train_baseline
     from agent.data.folder import write_png
     from agent.data.loaders import load_views
@@ -52,7 +53,7 @@ def baseline(
         pred = run.trainer.render(test_views.c2w[i], test_views.intrinsics[i], test_views.width, test_views.height)
         side = torch.cat([pred["rgb"].cpu(), gt[i]], 1).numpy()
         write_png(out / "renders" / f"{test_views.names[i]}.png", side)
-    torch.save({"trainer": run.trainer.state_dict(), "config": _config_dict(cfg)}, out / "checkpoint.pt")
+    save_baseline(out / CHECKPOINT, run.trainer, cfg)
 
     metrics = {
         "data": str(data),
@@ -76,8 +77,3 @@ def baseline(
         f"{metrics['seconds_per_step_median']:.3f} s/step median, {train_seconds:.0f} s; wrote {out}/"
     )
 
-
-def _config_dict(cfg) -> dict:
-    from cli.config import to_dict
-
-    return to_dict(cfg)

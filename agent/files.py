@@ -1,0 +1,48 @@
+"""Writing a file so that a crash at any moment leaves either the old file or the new one.
+
+A daemon may be SIGKILLed or lose power mid-write; its checkpoint must still be the last complete
+one. So the bytes go to a temporary file beside the target, are fsynced, renamed over the target
+(atomic on POSIX), and the directory is fsynced too: without that last step the rename itself
+may not survive a power cut, and the old file (or none) comes back.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+
+__all__ = ["atomic_write_bytes", "atomic_write_text"]
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Replace ``path`` by ``data`` atomically and durably (see the module docstring).
+
+    The temporary file has a unique name (two writers never share one) and ends in ``.tmp``;
+    it is removed if anything fails, and the target is then untouched."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    _fsync_dir(path.parent)
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def _fsync_dir(directory: Path) -> None:
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
