@@ -119,9 +119,19 @@ def _metadata(path: Path, data: bytes) -> dict[str, str]:
         header = json.loads(data[8:8 + size].decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError, RecursionError):
         raise CheckpointError(path, "not a safetensors file (its header is not JSON)") from None
+    _check_length(path, header, len(data) - 8 - size)
     meta = header.get("__metadata__") if isinstance(header, dict) else None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise CheckpointError(path, "a safetensors file, but not one dinerf wrote (no dinerf-state metadata)")
     if meta.get("version") != VERSION:
         raise CheckpointError(path, f"format version {meta.get('version')!r}; this dinerf reads {VERSION!r}")
     return meta
+
+
+def _check_length(path: Path, header: Any, data_bytes: int) -> None:
+    """A file cut short says so (safetensors itself would only say "not fully covered")."""
+    entries = header.values() if isinstance(header, dict) else ()
+    ends = [e["data_offsets"][1] for e in entries if isinstance(e, dict) and isinstance(e.get("data_offsets"), list)
+            and len(e["data_offsets"]) == 2 and isinstance(e["data_offsets"][1], int)]
+    if ends and max(ends) > data_bytes:
+        raise CheckpointError(path, f"truncated: its tensors need {max(ends)} bytes of data, it has {data_bytes}")

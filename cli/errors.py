@@ -17,13 +17,14 @@ class UserError(Exception):
 def friendly_errors(fn: F) -> F:
     """Decorator for typer commands: known error types become ``error: ...`` and exit code 2."""
     from agent.data.views import DataError
+    from agent.statefile import CheckpointError
     from cli.config import ConfigError
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
             return fn(*args, **kwargs)
-        except (UserError, DataError, ConfigError, FileNotFoundError) as e:
+        except (UserError, DataError, ConfigError, CheckpointError, FileNotFoundError) as e:
             typer.secho(f"error: {e}", err=True, fg=typer.colors.RED)
             raise typer.Exit(2) from None
 
