@@ -8,12 +8,14 @@ whatever it was written to, and ``agent`` needs nothing from ``cli``.
 from __future__ import annotations
 
 import dataclasses
+import operator
+import re
 import types
 import typing
 from pathlib import Path
 from typing import Any, Literal, TypeVar, get_args, get_origin
 
-__all__ = ["ConfigError", "from_dict", "to_dict"]
+__all__ = ["ConfigError", "InvalidValue", "check", "from_dict", "to_dict"]
 
 T = TypeVar("T")
 
@@ -104,7 +106,9 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "") -> T:
         return cls(**kwargs)
     except TypeError as e:  # a required field is missing
         raise ConfigError(f"{where or cls.__name__}: {e}") from None
-    except ValueError as e:  # __post_init__ validation
+    except InvalidValue as e:  # __post_init__ validation that names its field
+        raise ConfigError(f"{where + '.' if where else ''}{e.key} {e.message}") from None
+    except ValueError as e:  # other __post_init__ validation
         raise ConfigError(f"{where or cls.__name__}: {e}") from None
 
 
@@ -119,3 +123,41 @@ def to_dict(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     return obj
+
+
+class InvalidValue(ValueError):
+    """A ``__post_init__`` check that failed, naming its field: :func:`from_dict` then names the
+    whole key (``training.train.rays_per_step``), which is what the user typed or must fix."""
+
+    def __init__(self, key: str, message: str) -> None:
+        self.key, self.message = key, message
+        super().__init__(f"{key} {message}")
+
+
+_INTERVAL = re.compile(r"^in ([\[(])(\S+), (\S+)([\])])$")
+_COMPARE = {">=": operator.ge, ">": operator.gt, "<=": operator.le, "<": operator.lt}
+
+
+def _holds(value: Any, rule: str) -> bool:
+    m = _INTERVAL.match(rule)
+    if m:
+        lo, hi = float(m[2]), float(m[3])
+        above = lo <= value if m[1] == "[" else lo < value
+        return above and (value <= hi if m[4] == "]" else value < hi)
+    op, bound = rule.split()
+    return _COMPARE[op](value, float(bound))
+
+
+def check(obj: Any, **rules: str) -> None:
+    """Validate fields of a config dataclass: ``check(self, lr="> 0", decay="in [0, 1]")``.
+
+    Rules: ``>= x``, ``> x``, ``<= x``, ``< x``, ``in [a, b]`` (brackets or parentheses, open or
+    closed ends). A tuple's items are checked one by one. NaN fails every rule. Raises
+    :class:`InvalidValue` for the first field that breaks its rule: a zero or negative size or
+    rate crashes deep inside training, or quietly trains nothing, long after the start."""
+    for key, rule in rules.items():
+        value = getattr(obj, key)
+        items = list(enumerate(value)) if isinstance(value, (tuple, list)) else [(None, value)]
+        for i, v in items:
+            if not _holds(v, rule):
+                raise InvalidValue(key if i is None else f"{key}[{i}]", f"must be {rule}, got {v!r}")
