@@ -1,4 +1,5 @@
-"""Writing a file so that a crash at any moment leaves either the old file or the new one.
+"""Files written so that a crash at any moment leaves either the old file or the new one, and
+JSON files read so that a bad one is one clear error.
 
 A daemon may be SIGKILLed or lose power mid-write; its checkpoint must still be the last complete
 one. So the bytes go to a temporary file beside the target, are fsynced, renamed over the target
@@ -9,11 +10,13 @@ may not survive a power cut, and the old file (or none) comes back.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import tempfile
 from pathlib import Path
+from typing import Any, Callable
 
-__all__ = ["atomic_write_bytes", "atomic_write_text"]
+__all__ = ["atomic_write_bytes", "atomic_write_text", "read_json"]
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
@@ -46,3 +49,14 @@ def _fsync_dir(directory: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def read_json(path: str | Path, error: Callable[[str], Exception]) -> Any:
+    """The JSON document in ``path``. A file that cannot be read, is not UTF-8 or is not JSON
+    raises ``error("<path>: ...")``: one line for the user, whichever of the three it is."""
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
+        raise error(f"{path}: not valid JSON: {e}") from None
+    except OSError as e:
+        raise error(f"{path}: cannot be read ({e.strerror or e})") from None
