@@ -11,7 +11,7 @@ import typer
 
 from cli.errors import friendly_errors
 from cli.main import app
-from cli.options import DATA_HELP, SET_HELP, load_train_config, progress_bar, set_threads
+from cli.options import DATA_HELP, SET_HELP, check_output_folder, load_train_config, progress_bar, set_threads
 
 
 @app.command()
@@ -36,6 +36,7 @@ def baseline(
     from agent.data.loaders import load_views
 
     set_threads(threads)
+    check_output_folder(out, "--out")
     cfg = load_train_config(config, overrides, total_steps=steps)
     views = load_views(data, width=width)
     out.mkdir(parents=True, exist_ok=True)

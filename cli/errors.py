@@ -25,7 +25,13 @@ def friendly_errors(fn: F) -> F:
         try:
             return fn(*args, **kwargs)
         except (UserError, DataError, ConfigError, CheckpointError, FileNotFoundError) as e:
-            typer.secho(f"error: {e}", err=True, fg=typer.colors.RED)
-            raise typer.Exit(2) from None
+            _fail(str(e))
+        except OSError as e:  # the file system said no (a file where a folder must be, no permission ...)
+            _fail(f"{e.filename}: {e.strerror}" if e.filename and e.strerror else str(e))
 
     return wrapper  # type: ignore[return-value]
+
+
+def _fail(message: str) -> None:
+    typer.secho(f"error: {' '.join(message.split())}", err=True, fg=typer.colors.RED)
+    raise typer.Exit(2) from None
