@@ -12,7 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import tempfile
+import secrets
 from pathlib import Path
 from typing import Any, Callable
 
@@ -23,9 +23,11 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     """Replace ``path`` by ``data`` atomically and durably (see the module docstring).
 
     The temporary file has a unique name (two writers never share one) and ends in ``.tmp``;
-    it is removed if anything fails, and the target is then untouched."""
+    it is removed if anything fails, and the target is then untouched. It is created with the
+    process's umask, as ``open`` would (``mkstemp`` would make it private to its owner)."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
