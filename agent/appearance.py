@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from agent.config_io import check
+
 __all__ = ["AppearanceConfig", "ColourAffine"]
 
 
@@ -30,6 +32,9 @@ class AppearanceConfig:
     lr: float = 2e-3  # Adam on the 12 numbers of each image
     start_step: int = 0
     weight: float = 1e-2  # L2 penalty towards the identity, against the field's own colour
+
+    def __post_init__(self) -> None:
+        check(self, lr=">= 0", start_step=">= 0", weight=">= 0")
 
 
 class ColourAffine(nn.Module):

@@ -2,38 +2,48 @@
 
 ::
 
-    <run dir>/checkpoint.pt       the robot's whole state after its last completed round (atomic)
-    <run dir>/rounds/<k>.pt       field + grid + pose after round k (``daemon.keep_rounds``), for reports
-    <run dir>/telemetry.jsonl     one agent.telemetry.RoundRecord per completed round
-    <run dir>/events.jsonl        joins, alignment, failovers, silent neighbours ...
-    <run dir>/done.json           written once every round is done
-    <run dir>/sfm/                an images-only robot's own SfM, computed once, reused on restart
+    <run dir>/checkpoint.safetensors   the robot's whole state after its last completed round
+    <run dir>/rounds/<k>.safetensors   field + grid + pose after round k (``daemon.keep_rounds``), for reports
+    <run dir>/telemetry.jsonl          one agent.telemetry.RoundRecord per completed round
+    <run dir>/events.jsonl             joins, alignment, failovers, silent neighbours ...
+    <run dir>/done.json                written once every round is done
+    <run dir>/sfm/                     an images-only robot's own SfM, computed once, reused on restart
+
+Checkpoints and snapshots are state files (``agent.statefile``: safetensors + JSON, checksummed,
+written atomically); ``done.json`` is written atomically too. A file that cannot be used is
+refused with a :class:`CheckpointError` and left in place. A ``checkpoint.pt`` of an older
+dinerf is a pickle: it is refused, never loaded.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import torch
 from torch import Tensor
 
+from agent.config_io import ConfigError, from_dict, to_dict
 from agent.data.views import Views
+from agent.files import atomic_write_text
+from agent.statefile import CheckpointError, read_state, write_state
 from agent.swarm import SwarmTrainingConfig, build_robot
-from agent.trainer import RobotTrainer
+from agent.trainer import RobotTrainer, TrainConfig
 
-__all__ = ["RunFolder", "RobotCheckpoint", "CHECKPOINT", "SFM_CACHE", "load_for_eval"]
+__all__ = ["RunFolder", "RobotCheckpoint", "CheckpointError", "CHECKPOINT", "SFM_CACHE", "load_for_eval",
+           "save_baseline", "load_baseline"]
 
-CHECKPOINT = "checkpoint.pt"
+CHECKPOINT = "checkpoint.safetensors"
+LEGACY_CHECKPOINT = "checkpoint.pt"  # torch.save of dinerf before state files: refused
+SNAPSHOT_SUFFIX = ".safetensors"
 SFM_CACHE = "sfm"
 ROUNDS = "rounds"
 TELEMETRY = "telemetry.jsonl"
 EVENTS = "events.jsonl"
 DONE = "done.json"
+ROBOT_KIND, ROUND_KIND, BASELINE_KIND = "robot-checkpoint", "round-snapshot", "baseline"
 
 
 @dataclass
@@ -49,12 +59,14 @@ class RobotCheckpoint:
     signature: str  # the model spec's: a checkpoint of another model is refused
 
 
-def _atomic_torch_save(obj: Any, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    with open(tmp, "rb") as f:
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+def _field(path: Path, state: Any, key: str, kind: type | tuple[type, ...]) -> Any:
+    """``state[key]``, which must be a ``kind``: a well-formed file of the wrong shape is refused too."""
+    if not isinstance(state, dict) or key not in state:
+        raise CheckpointError(path, f"malformed state: no {key!r}")
+    value = state[key]
+    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+        raise CheckpointError(path, f"malformed state: {key!r} is a {type(value).__name__}")
+    return value
 
 
 class RunFolder:
@@ -72,11 +84,12 @@ class RunFolder:
     sfm_cache = property(lambda self: self.path / SFM_CACHE)
 
     def round_path(self, round_index: int) -> Path:
-        return self.path / ROUNDS / f"{round_index:05d}.pt"
+        return self.path / ROUNDS / f"{round_index:05d}{SNAPSHOT_SUFFIX}"
 
     def snapshot_rounds(self) -> list[int]:
         """The rounds kept under ``rounds/`` (``daemon.keep_rounds``), in order."""
-        return sorted(int(p.stem) for p in (self.path / ROUNDS).glob("*.pt") if p.stem.isdigit())
+        found = (self.path / ROUNDS).glob(f"*{SNAPSHOT_SUFFIX}")
+        return sorted(int(p.name[:-len(SNAPSHOT_SUFFIX)]) for p in found if p.name[:-len(SNAPSHOT_SUFFIX)].isdigit())
 
     def load_views(self, data_dir: str | Path, width: int | None) -> Views:
         """The robot's views as its daemon trains on them: at ``width``; images only: through this run's SfM."""
@@ -85,32 +98,75 @@ class RunFolder:
         return load_views(data_dir, width=width, sfm_cache_dir=self.sfm_cache)
 
     def save(self, ck: RobotCheckpoint) -> None:
-        _atomic_torch_save({"round": ck.round, "robot_id": ck.robot_id, "trainer": ck.trainer,
-                            "elected": ck.elected, "training": ck.training,
-                            "box_from_shared": ck.box_from_shared, "signature": ck.signature}, self.checkpoint)
+        write_state(self.checkpoint, ROBOT_KIND, {
+            "round": ck.round, "robot_id": ck.robot_id, "elected": ck.elected, "signature": ck.signature,
+            "training": to_dict(ck.training), "box_from_shared": ck.box_from_shared, "trainer": ck.trainer})
 
-    def save_round(self, round_index: int, trainer: RobotTrainer) -> None:
+    def save_round(self, round_index: int, trainer: RobotTrainer, robot_id: int) -> None:
         (self.path / ROUNDS).mkdir(exist_ok=True)
-        snap = {"round": round_index, "field": trainer.field.state_dict(), "grid": trainer.grid.state_dict(),
-                "pose": trainer.pose.state_dict()}
-        _atomic_torch_save(snap, self.round_path(round_index))
+        write_state(self.round_path(round_index), ROUND_KIND, {
+            "round": round_index, "robot_id": robot_id, "field": trainer.field.state_dict(),
+            "grid": trainer.grid.state_dict(), "pose": trainer.pose.state_dict()})
 
-    def load(self, device: torch.device | str = "cpu") -> RobotCheckpoint | None:
-        """The checkpoint, or None if there is none."""
-        if not self.checkpoint.is_file():
+    def load(self, robot_id: int | None = None) -> RobotCheckpoint | None:
+        """The checkpoint (robot ``robot_id``'s, if given), or None if there is none.
+
+        Raises :class:`CheckpointError` for one that cannot be used, and for an old pickled one."""
+        path = self.checkpoint
+        if not path.exists() and not path.is_symlink():
+            legacy = self.path / LEGACY_CHECKPOINT
+            if legacy.is_dir():
+                raise CheckpointError(legacy, "is a directory, not a checkpoint")
+            if legacy.exists():
+                raise CheckpointError(legacy, "a checkpoint of an older dinerf: a pickle (torch.save), "
+                                      "which is never loaded (it could run code)")
             return None
-        state = torch.load(self.checkpoint, map_location=device, weights_only=False)
-        return RobotCheckpoint(round=int(state["round"]), robot_id=int(state["robot_id"]), trainer=state["trainer"],
-                               elected=bool(state.get("elected", False)), training=state["training"],
-                               box_from_shared=state["box_from_shared"], signature=state.get("signature", ""))
+        state = read_state(path, ROBOT_KIND)
+        ck = RobotCheckpoint(
+            round=_field(path, state, "round", int), robot_id=_field(path, state, "robot_id", int),
+            trainer=_field(path, state, "trainer", dict), elected=_field(path, state, "elected", bool),
+            training=self._training(path, _field(path, state, "training", dict)),
+            box_from_shared=_field(path, state, "box_from_shared", Tensor),
+            signature=_field(path, state, "signature", str))
+        if robot_id is not None and ck.robot_id != robot_id:
+            raise CheckpointError(path, f"robot {ck.robot_id}'s checkpoint, not robot {robot_id}'s")
+        if ck.box_from_shared.shape != (4, 4):
+            raise CheckpointError(path, f"malformed state: a field box of shape {list(ck.box_from_shared.shape)}")
+        return ck
+
+    @staticmethod
+    def _training(path: Path, data: dict) -> SwarmTrainingConfig:
+        try:
+            return from_dict(SwarmTrainingConfig, data, "training")
+        except ConfigError as e:
+            raise CheckpointError(path, f"its training settings do not load: {e}") from None
+
+    def load_round(self, round_index: int, robot_id: int) -> dict[str, dict]:
+        """The field, grid and pose state of snapshot ``rounds/<round_index>``."""
+        path = self.round_path(round_index)
+        if not path.exists():
+            raise CheckpointError(path, f"no snapshot of round {round_index} (kept: {self.snapshot_rounds()})")
+        snap = read_state(path, ROUND_KIND)
+        if (_field(path, snap, "round", int), _field(path, snap, "robot_id", int)) != (round_index, robot_id):
+            raise CheckpointError(path, f"robot {snap['robot_id']}'s round {snap['round']}, "
+                                  f"not robot {robot_id}'s round {round_index}")
+        return {k: _field(path, snap, k, dict) for k in ("field", "grid", "pose")}
 
     def write_done(self, robot_id: int, rounds: int, rejected: dict[str, int]) -> None:
         done = {"robot": robot_id, "rounds": rounds, "time": time.time(), "rejected": rejected}
-        self.done.write_text(json.dumps(done, indent=2) + "\n")
+        atomic_write_text(self.done, json.dumps(done, indent=2) + "\n")
+
+
+def load_into(trainer: RobotTrainer, path: Path, state: dict) -> None:
+    """``trainer.load_state_dict(state)``; a state that does not fit the trainer is a CheckpointError."""
+    try:
+        trainer.load_state_dict(state)
+    except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as e:
+        raise CheckpointError(path, f"does not fit this model ({type(e).__name__}: {e})") from None
 
 
 def load_for_eval(run_dir: str | Path, data_dir: str | Path, round: int | None = None) -> RobotTrainer:
-    """Rebuild a robot's trainer from its run folder (final checkpoint or ``rounds/<k>.pt``)."""
+    """Rebuild a robot's trainer from its run folder (final checkpoint or ``rounds/<k>``)."""
     folder = RunFolder(run_dir, create=False)
     ck = folder.load()
     if ck is None:
@@ -118,10 +174,29 @@ def load_for_eval(run_dir: str | Path, data_dir: str | Path, round: int | None =
     training = ck.training
     views = folder.load_views(data_dir, training.image_width)
     trainer = build_robot(ck.robot_id, views, ck.box_from_shared, training).trainer
-    trainer.load_state_dict(ck.trainer)
+    load_into(trainer, folder.checkpoint, ck.trainer)
     if round is not None:
-        snap = torch.load(folder.round_path(round), map_location="cpu", weights_only=False)
-        trainer.field.load_state_dict(snap["field"])
-        trainer.grid.load_state_dict(snap["grid"])
-        trainer.pose.load_state_dict(snap["pose"])
+        snap = folder.load_round(round, ck.robot_id)
+        try:
+            trainer.field.load_state_dict(snap["field"])
+            trainer.grid.load_state_dict(snap["grid"])
+            trainer.pose.load_state_dict(snap["pose"])
+        except (KeyError, TypeError, ValueError, RuntimeError) as e:
+            raise CheckpointError(folder.round_path(round), f"does not fit this model ({e})") from None
     return trainer
+
+
+def save_baseline(path: str | Path, trainer: RobotTrainer, cfg: TrainConfig) -> None:
+    """The centralised baseline's model (``dinerf-agent baseline``): trainer state + its TrainConfig."""
+    write_state(path, BASELINE_KIND, {"trainer": trainer.state_dict(), "config": to_dict(cfg)})
+
+
+def load_baseline(path: str | Path) -> tuple[dict, TrainConfig]:
+    """(trainer state, TrainConfig) of a file :func:`save_baseline` wrote."""
+    path = Path(path)
+    state = read_state(path, BASELINE_KIND)
+    try:
+        cfg = from_dict(TrainConfig, _field(path, state, "config", dict), "train")
+    except ConfigError as e:
+        raise CheckpointError(path, f"its settings do not load: {e}") from None
+    return _field(path, state, "trainer", dict), cfg

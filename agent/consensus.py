@@ -150,7 +150,8 @@ class Consensus:
         for y in edges.values():
             if len(y) != len(self._zeros) or any(a.shape != b.shape for a, b in zip(y, self._zeros)):
                 raise ValueError("consensus state does not match the model's parameter shapes")
-        self.edge_duals = {int(j): [d.clone() for d in y] for j, y in edges.items()}
+        self.edge_duals = {int(j): [d.to(z.device, copy=True) for d, z in zip(y, self._zeros)]
+                           for j, y in edges.items()}
         # A checkpoint from before edge_round: every edge counts as updated in its round.
         self.edge_round = {int(j): int(r) for j, r in state.get("edge_round", {j: state["round"] for j in edges}).items()}
         self.duals = [z.clone() for z in self._zeros]

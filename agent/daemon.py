@@ -34,7 +34,7 @@ from torch import Tensor
 
 from agent.align import AlignConfig
 from agent.bootstrap import Bootstrap, BootstrapTiming
-from agent.checkpoint import RobotCheckpoint, RunFolder
+from agent.checkpoint import CheckpointError, RobotCheckpoint, RunFolder, load_into
 from agent.data.views import Views
 from agent.geometry import pose_summary
 from agent.swarm import RobotSetup, SwarmTrainingConfig, build_robot
@@ -61,7 +61,7 @@ class DaemonConfig:
     alive_expiry_s: float = 2.0  # relayed liveness evidence older than this is dropped
     linger_s: float = 3.0  # after the last round, keep serving the newest snapshot this long
     eval_every: int = 1  # rounds between PSNR evaluations on own held-out views (0 = never)
-    keep_rounds: bool = False  # also save rounds/<k>.pt (field + pose) for per-round reports
+    keep_rounds: bool = False  # also save rounds/<k>.safetensors (field + pose) for per-round reports
     join_timeout_s: float = 5.0  # query timeout for neighbours' newest snapshots
     pull_after_s: float = 2.0  # a neighbour's snapshot missing this long is asked for (pulled; PullPacing)
     silent_after_s: float = 3.0  # the barrier stops waiting for a neighbour that sent nothing for this long, token or not
@@ -231,21 +231,28 @@ class Daemon:
         self.folder.save(RobotCheckpoint(self.round, self.robot_id, self.trainer.state_dict(), self.elected,
                                          self.training, self.trainer.box_from_shared.cpu(), self.spec.signature()))
         if self.cfg.keep_rounds:
-            self.folder.save_round(self.round, self.trainer)
+            self.folder.save_round(self.round, self.trainer, self.robot_id)
 
     def _resume(self) -> bool:
+        """Continue from our checkpoint, if there is one. One that cannot be used stops the robot
+        with one line (CheckpointError) and stays where it is: resuming from a damaged or foreign
+        state, or silently starting over, would both be worse than asking the user."""
+        try:
+            ck = self.folder.load(self.robot_id)
+        except CheckpointError as e:
+            raise CheckpointError(e.path, f"cannot resume from it: {e.reason} (move it away to start fresh)") from None
+        if ck is None:
+            return False
         path = self.folder.checkpoint
         try:
-            ck = self.folder.load(self.trainer.device)
-            if ck is None:
-                return False
             if self.bootstrap.box_pending:  # learnt before the restart
                 self.bootstrap.adopt_box(ck.box_from_shared.double().cpu().numpy(), "our checkpoint")
             if ck.signature != self.spec.signature():
                 raise ValueError("the model in the checkpoint differs from the configured one")
-            self.trainer.load_state_dict(ck.trainer)
+            load_into(self.trainer, path, ck.trainer)
         except Exception as e:
-            raise RuntimeError(f"cannot resume from {path}: {e} (move it away to start fresh)") from None
+            reason = e.reason if isinstance(e, CheckpointError) else str(e)
+            raise CheckpointError(path, f"cannot resume from it: {reason} (move it away to start fresh)") from None
         self.round, self.elected = ck.round, ck.elected
         self.mailbox.advance(self.round)
         self.report.event("resumed", from_round=self.round)

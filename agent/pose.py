@@ -14,6 +14,7 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
+from agent.config_io import check
 from agent.geometry import sim3_from_params, sim3_inverse
 
 __all__ = ["PoseConfig", "RelativePose"]
@@ -29,6 +30,10 @@ class PoseConfig:
     decay_to: float = 0.1  # pose lr decays geometrically to this fraction at the end
     lr_factor_from_estimate: float = 0.1  # pose lrs x this from an estimate without a sigma: full Adam steps shake it loose
     travel_sigmas: float = 2.0  # from an estimate with a rotation sigma: the whole run moves the pose at most this many sigma
+
+    def __post_init__(self) -> None:
+        check(self, lr_rotation=">= 0", lr_translation=">= 0", lr_scale=">= 0", start_step=">= 0",
+              decay_to="in (0, 1]", lr_factor_from_estimate=">= 0", travel_sigmas="> 0")
 
 
 class RelativePose(nn.Module):

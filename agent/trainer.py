@@ -28,6 +28,7 @@ from agent.metrics import psnr, ssim
 from agent.nerf.field import FieldConfig, NGPField
 from agent.nerf.occupancy import OccupancyConfig, OccupancyGrid
 from agent.camera import pixel_centre
+from agent.config_io import InvalidValue, check
 from agent.nerf.rays import image_rays, pixel_rays
 from agent.nerf.renderer import render_image, render_rays
 from agent.nerf.sampler import MarchConfig
@@ -43,6 +44,10 @@ class OptimConfig:
     decay_at: tuple[float, ...] = (0.6, 0.85)  # fractions of total_steps where the lr is multiplied ...
     decay_factor: float = 0.33  # ... by this
 
+    def __post_init__(self) -> None:
+        check(self, lr="> 0", betas="in [0, 1)", eps="> 0", warmup_steps=">= 0", decay_at="in [0, 1]",
+              decay_factor="> 0")
+
 
 @dataclass
 class CoarseToFineConfig:
@@ -52,6 +57,11 @@ class CoarseToFineConfig:
     always_on_levels: int = 4
     start: float = 0.0  # fraction of total_steps where the finer levels begin to appear
     end: float = 0.5  # ... and where all of them are fully on
+
+    def __post_init__(self) -> None:
+        check(self, always_on_levels=">= 0", start="in [0, 1]", end="in [0, 1]")
+        if self.end < self.start:
+            raise InvalidValue("end", f"must be >= start ({self.start}), got {self.end!r}")
 
 
 @dataclass
@@ -70,6 +80,9 @@ class CameraRefineConfig:
     lr_focal: float = 2e-4  # log focal length per step
     start_step: int = 200
 
+    def __post_init__(self) -> None:
+        check(self, lr_rotation=">= 0", lr_translation=">= 0", lr_focal=">= 0", start_step=">= 0")
+
 
 @dataclass
 class DepthConfig:
@@ -79,6 +92,9 @@ class DepthConfig:
     weight: float = 0.0
     learn_affine: bool = True  # learn a per-image scale a_m and shift b_m of the prior
     lr: float = 1e-3
+
+    def __post_init__(self) -> None:
+        check(self, weight=">= 0", lr=">= 0")
 
 
 @dataclass
@@ -102,6 +118,18 @@ class TrainConfig:
     cameras: CameraRefineConfig = config_field(default_factory=CameraRefineConfig)
     depth: DepthConfig = config_field(default_factory=DepthConfig)
     appearance: AppearanceConfig = config_field(default_factory=AppearanceConfig)
+
+    def __post_init__(self) -> None:
+        check(self, rays_per_step=">= 1", target_samples_per_step=">= 0", min_rays_per_step=">= 1",
+              total_steps=">= 1", seed="in [0, 9.2e18)", init_seed="in [0, 9.2e18)")
+        try:
+            kind = torch.device(self.device).type
+        except (RuntimeError, TypeError):
+            raise InvalidValue("device", f"is not a torch device: {self.device!r}") from None
+        available = {"cpu": True, "cuda": torch.cuda.is_available(), "mps": torch.backends.mps.is_available()}
+        if not available.get(kind, False):
+            raise InvalidValue("device", f"{self.device!r} is not available on this machine (available: "
+                               f"{sorted(k for k, ok in available.items() if ok)})")
 
 
 @dataclass

@@ -68,6 +68,7 @@ def run_cmd(
     force: bool = typer.Option(False, "--force", help="Replace the output of an earlier run in --out (a folder holding run.json)."),
 ) -> None:
     """Run a scenario: split the data, start one daemon per robot, apply the faults, write the report."""
+    from cli.options import check_output_folder
     from cli.scenario.netns import NetnsError, netns_unavailable_reason
     from cli.scenario.report import build_report
     from cli.scenario.runner import ScenarioRunner
@@ -80,6 +81,7 @@ def run_cmd(
     if spec.needs_files():
         spec.resolved_dataset()  # a missing dataset is an error now, not after the set-up
     out = out or Path("runs") / "scenarios" / spec.name / time.strftime("%Y%m%d-%H%M%S")
+    check_output_folder(out, "--out")
     if out.exists() and any(out.iterdir()):
         if not (force and (out / "run.json").is_file()):
             raise UserError(f"--out {out}: folder is not empty; choose another"

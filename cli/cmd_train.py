@@ -11,7 +11,7 @@ import typer
 
 from cli.errors import friendly_errors
 from cli.main import app
-from cli.options import DATA_HELP, SET_HELP, load_train_config, progress_bar, set_threads
+from cli.options import DATA_HELP, SET_HELP, check_output_folder, load_train_config, progress_bar, set_threads
 
 
 @app.command()
@@ -30,11 +30,13 @@ def baseline(
     """Train one model on all views (the paper's centralised baseline); report PSNR/SSIM on held-out views."""
     import torch
 
+    from agent.checkpoint import CHECKPOINT, save_baseline
     from agent.evaluation import evaluate_heldout, train_baseline
     from agent.data.folder import write_png
     from agent.data.loaders import load_views
 
     set_threads(threads)
+    check_output_folder(out, "--out")
     cfg = load_train_config(config, overrides, total_steps=steps)
     views = load_views(data, width=width)
     out.mkdir(parents=True, exist_ok=True)
@@ -52,7 +54,7 @@ def baseline(
         pred = run.trainer.render(test_views.c2w[i], test_views.intrinsics[i], test_views.width, test_views.height)
         side = torch.cat([pred["rgb"].cpu(), gt[i]], 1).numpy()
         write_png(out / "renders" / f"{test_views.names[i]}.png", side)
-    torch.save({"trainer": run.trainer.state_dict(), "config": _config_dict(cfg)}, out / "checkpoint.pt")
+    save_baseline(out / CHECKPOINT, run.trainer, cfg)
 
     metrics = {
         "data": str(data),
@@ -76,8 +78,3 @@ def baseline(
         f"{metrics['seconds_per_step_median']:.3f} s/step median, {train_seconds:.0f} s; wrote {out}/"
     )
 
-
-def _config_dict(cfg) -> dict:
-    from cli.config import to_dict
-
-    return to_dict(cfg)

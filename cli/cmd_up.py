@@ -36,8 +36,11 @@ def up(
     from protocol.keys import Keys
     from protocol.transport import TransportError, ZenohTransport
 
+    from cli.options import check_output_folder
+
     if not data.is_dir():
-        raise UserError(f"--data {data}: no such folder (expected a robot folder written by `dinerf-agent split`)")
+        what = "not a folder" if data.exists() else "no such folder"
+        raise UserError(f"--data {data}: {what} (expected a robot folder written by `dinerf-agent split`)")
     swarm_path = swarm or find_swarm_file(data)
     if swarm_path is None:
         raise UserError(f"no --swarm given and no swarm.toml beside or inside {data}")
@@ -46,6 +49,7 @@ def up(
         raise UserError(f"--id {robot_id} is not one of the swarm's robots {cfg.swarm.robots} ({swarm_path})")
     scene = read_scene(base_dir / cfg.swarm.scene)
     run_dir = run_dir or Path("runs") / cfg.swarm.name / f"robot{robot_id}"
+    check_output_folder(run_dir, "--run-dir")
     if scene.box_from_shared is None and cfg.daemon.initial_pose != "coarse":
         raise UserError(f"{base_dir / cfg.swarm.scene} has no field box (robots with images only): set "
                         "daemon.initial_pose = 'coarse' so that the reference shares the box of its SfM frame")

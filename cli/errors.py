@@ -17,14 +17,21 @@ class UserError(Exception):
 def friendly_errors(fn: F) -> F:
     """Decorator for typer commands: known error types become ``error: ...`` and exit code 2."""
     from agent.data.views import DataError
+    from agent.statefile import CheckpointError
     from cli.config import ConfigError
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
             return fn(*args, **kwargs)
-        except (UserError, DataError, ConfigError, FileNotFoundError) as e:
-            typer.secho(f"error: {e}", err=True, fg=typer.colors.RED)
-            raise typer.Exit(2) from None
+        except (UserError, DataError, ConfigError, CheckpointError, FileNotFoundError) as e:
+            _fail(str(e))
+        except OSError as e:  # the file system said no (a file where a folder must be, no permission ...)
+            _fail(f"{e.filename}: {e.strerror}" if e.filename and e.strerror else str(e))
 
     return wrapper  # type: ignore[return-value]
+
+
+def _fail(message: str) -> None:
+    typer.secho(f"error: {' '.join(message.split())}", err=True, fg=typer.colors.RED)
+    raise typer.Exit(2) from None

@@ -8,6 +8,7 @@ from pathlib import Path
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from cli.config import ConfigError, apply_overrides, from_dict, load_toml
+from cli.errors import UserError
 
 DATA_HELP = "Dataset: a folder (transforms.json, COLMAP sparse/0, images), a json file, or procedural[:views=100,width=64,seed=0]."
 SET_HELP = "Override a setting, e.g. --set optim.lr=5e-3 (repeatable)."
@@ -21,10 +22,18 @@ def set_threads(threads: int) -> None:
     torch.set_num_threads(threads)
 
 
+def check_output_folder(path: Path, option: str) -> None:
+    """A file where a command will write its folder is the user's mistake: say so in one line."""
+    if path.exists() and not path.is_dir():
+        raise UserError(f"{option} {path}: exists and is not a folder")
+
+
 def load_train_config(path: Path | None, overrides: list[str], total_steps: int | None = None):
     """TrainConfig from the [train] table of a TOML file (if any), then --set overrides."""
     from agent.trainer import TrainConfig
 
+    if total_steps is not None and total_steps < 1:
+        raise ConfigError(f"--steps must be >= 1, got {total_steps}")
     data = load_toml(path).get("train", {}) if path else {}
     cfg = from_dict(TrainConfig, data, "train")
     if total_steps is not None:

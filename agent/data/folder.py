@@ -30,6 +30,7 @@ from torch import Tensor
 
 from agent.camera import DISTORTION_KEYS, distortion_coeffs
 from agent.data.views import DataError, Views
+from agent.files import read_json
 
 __all__ = ["write_views_folder", "write_json", "write_png", "matrix_to_list", "read_scene", "read_truth", "SceneInfo"]
 
@@ -106,10 +107,7 @@ def write_views_folder(
 def _read_json(path: Path, what: str) -> dict:
     if not path.is_file():
         raise DataError(f"{path}: not found; expected the {what} written by `dinerf-agent split`")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise DataError(f"{path}: not valid JSON: {e}") from None
+    data = read_json(path, DataError)
     if not isinstance(data, dict):
         raise DataError(f"{path}: expected a JSON object")
     return data

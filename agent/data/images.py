@@ -17,6 +17,8 @@ from agent.data.views import DataError, Views
 __all__ = [
     "IMAGE_EXTENSIONS",
     "read_image",
+    "read_raw",
+    "imread",
     "read_mask",
     "target_size",
     "resize_image",
@@ -57,11 +59,29 @@ def read_mask(path: str | Path) -> np.ndarray:
     return np.ascontiguousarray(m, dtype=np.float32)
 
 
-def _read_unit(path: str | Path) -> np.ndarray:
-    """A file's pixels as cv2 decodes them (BGR(A) order), float32 in [0, 1]."""
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+def imread(path: str | Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray | None:
+    """``cv2.imread``, without OpenCV's own log line on a file it cannot decode: the caller
+    reports that in one line of its own (the CLI's ``error: ...``)."""
+    log = cv2.utils.logging
+    level = log.getLogLevel()
+    log.setLogLevel(log.LOG_LEVEL_SILENT)
+    try:
+        return cv2.imread(str(path), flags)
+    finally:
+        log.setLogLevel(level)
+
+
+def read_raw(path: str | Path) -> np.ndarray:
+    """A file's pixels as cv2 decodes them (BGR(A) order, its own dtype); DataError if it is no image."""
+    img = imread(path)
     if img is None:
         raise DataError(f"{path}: cannot be read as an image")
+    return img
+
+
+def _read_unit(path: str | Path) -> np.ndarray:
+    """A file's pixels as cv2 decodes them (BGR(A) order), float32 in [0, 1]."""
+    img = read_raw(path)
     scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(img.dtype)
     if scale is None and not np.issubdtype(img.dtype, np.floating):
         raise DataError(f"{path}: unsupported pixel type {img.dtype}")

@@ -12,13 +12,12 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
 from agent.camera import llff_to_opengl_c2w
 from agent.data.frames import load_pixels
-from agent.data.images import list_image_files, stack_images
+from agent.data.images import list_image_files, read_raw, stack_images
 from agent.data.masks import find_masks, masks_meta
 from agent.data.views import DataError, Views
 
@@ -123,7 +122,4 @@ def choose_image_dir(folder: Path, width: int | None) -> tuple[Path, list[Path]]
 
 
 def _image_width(path: Path) -> int:
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise DataError(f"{path}: cannot be read as an image")
-    return int(img.shape[1])
+    return int(read_raw(path).shape[1])

@@ -183,7 +183,8 @@ def _reconstruct(files: list[Path], work: Path, config: SfmConfig) -> dict:
     if pycolmap.has_cuda:  # the Device.cpu arguments below already force the CPU path
         log.info("pycolmap was built with CUDA; forcing the CPU")
     pycolmap.set_random_seed(config.seed)
-    pycolmap.logging.minloglevel = 0 if config.verbose else 2  # 2 = errors only
+    # 3 = fatal only: a failed reconstruction is reported by our own one-line error (sfm.verbose: COLMAP's log)
+    pycolmap.logging.minloglevel = 0 if config.verbose else 3
 
     img_dir = work / "images"
     names, size = _write_sfm_images(files, img_dir, config)

@@ -6,7 +6,6 @@ All three store OpenGL camera-to-world poses, so only the intrinsics differ: ``f
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,10 +17,11 @@ import torch
 
 from agent.camera import focal_from_fov
 from agent.data.frames import Pixels, lens_meta, load_pixels, prepare_depth
-from agent.data.images import IMAGE_EXTENSIONS, stack_images, unique_names
+from agent.data.images import IMAGE_EXTENSIONS, imread, stack_images, unique_names
 from agent.data.lens import Lens, transforms_lens
 from agent.data.masks import check_mask_paths, find_masks, masks_meta
 from agent.data.views import EXPECTED_LAYOUTS, DataError, Views
+from agent.files import read_json
 
 __all__ = ["load_transforms"]
 
@@ -104,12 +104,9 @@ def _describe_pixels(meta: dict, loaded: list["_Frame"], masks: list[Path] | Non
 
 def _read_json(json_path: Path) -> tuple[dict, list]:
     """The top-level object and its non-empty ``frames`` of a transforms file, checked."""
-    try:
-        top = json.loads(json_path.read_text())
-    except FileNotFoundError:
-        raise DataError(f"{json_path}: no such file; {EXPECTED_LAYOUTS}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DataError(f"{json_path}: not valid JSON: {e}") from None
+    if not json_path.is_file():
+        raise DataError(f"{json_path}: no such file; {EXPECTED_LAYOUTS}")
+    top = read_json(json_path, DataError)
     if not isinstance(top, dict):
         raise DataError(f"{json_path}: expected a JSON object with a 'frames' list")
     frames = top.get("frames")
@@ -310,7 +307,7 @@ def _read_depth_file(path: Path, factor: float | None, where: str) -> np.ndarray
             raise DataError(f"{where}: cannot read depth {path}: {e}") from None
         default = 1.0
     else:
-        d = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_UNCHANGED)
+        d = imread(path, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_UNCHANGED)
         if d is None:
             raise DataError(f"{where}: cannot read depth image {path}")
         default = 1e-3 if np.issubdtype(d.dtype, np.integer) else 1.0

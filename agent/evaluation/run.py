@@ -1,6 +1,6 @@
 """A finished swarm run scored round by round: every robot's kept snapshots on the held-out views.
 
-Per robot and per scored round k (``rounds/<k>.pt``, rebuilt by ``agent.checkpoint.load_for_eval``):
+Per robot and per scored round k (``rounds/<k>.safetensors``, rebuilt by ``agent.checkpoint.load_for_eval``):
 PSNR/SSIM on all held-out views and on those only other robots saw, the pose error against the
 truth, and the consensus disagreement ``||theta_i - mean|| / ||mean||`` among the robots that
 have a snapshot of that round. A robot's final snapshot is also scored the costly ways (each

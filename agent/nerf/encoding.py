@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from agent.config_io import InvalidValue, check
+
 # Spatial-hash primes of instant-NGP, as int32 (wrap-around multiplication is the hash).
 _PRIMES_I32 = (1, 2654435761 - 2**32, 805459861)
 
@@ -28,12 +30,11 @@ class HashGridConfig:
     init_scale: float = 1e-4  # tables start near zero so the MLP sees a smooth field
 
     def __post_init__(self) -> None:
-        if self.num_levels < 1 or self.features_per_level < 1:
-            raise ValueError("num_levels and features_per_level must be >= 1")
-        if not 8 <= self.log2_hashmap_size <= 24:
-            raise ValueError("log2_hashmap_size must be in [8, 24]")
-        if not 2 <= self.base_resolution <= self.max_resolution:
-            raise ValueError("need 2 <= base_resolution <= max_resolution")
+        check(self, num_levels=">= 1", features_per_level=">= 1", log2_hashmap_size="in [8, 24]",
+              base_resolution=">= 2", init_scale=">= 0")
+        if not self.base_resolution <= self.max_resolution:
+            raise InvalidValue("max_resolution", f"must be >= base_resolution ({self.base_resolution}), "
+                               f"got {self.max_resolution!r}")
 
     @property
     def output_dim(self) -> int:

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
+from agent.config_io import check
 from agent.nerf.contraction import contract
 from agent.nerf.encoding import HashGrid, HashGridConfig
 
@@ -32,8 +33,8 @@ class FieldConfig:
     unbounded: bool | None = None
 
     def __post_init__(self) -> None:
-        if not 1 <= self.sh_degree <= 4:
-            raise ValueError("sh_degree must be in [1, 4]")
+        check(self, density_hidden=">= 1", geo_features=">= 0", color_hidden=">= 1", color_layers=">= 0",
+              sh_degree="in [1, 4]")
 
 
 class _TruncExp(torch.autograd.Function):

@@ -15,6 +15,8 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from agent.config_io import check
+
 
 @dataclass
 class OccupancyConfig:
@@ -23,6 +25,9 @@ class OccupancyConfig:
     decay: float = 0.95
     update_every: int = 16
     warmup_steps: int = 256
+
+    def __post_init__(self) -> None:
+        check(self, resolution=">= 1", decay="in [0, 1]", update_every=">= 1", warmup_steps=">= 0")
 
 
 class OccupancyGrid:

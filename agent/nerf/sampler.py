@@ -25,6 +25,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from agent.config_io import InvalidValue, check
 from agent.nerf.occupancy import OccupancyGrid
 
 
@@ -38,6 +39,12 @@ class MarchConfig:
     skip_visibility_above: float = 0.6  # trainer: skip the visibility pass while it would keep more than this
     far: float = 1000.0  # unbounded fields: how far a ray is marched (box units)
     cone_angle: float = 1 / 32  # unbounded fields, outside the box: step = max(step_size, cone_angle * t)
+
+    def __post_init__(self) -> None:
+        check(self, step_size="> 0", near=">= 0", early_stop_eps="in (0, 1)", alpha_threshold="in [0, 1)",
+              first_wave=">= 1", cone_angle=">= 0")
+        if not self.far > self.near:
+            raise InvalidValue("far", f"must be > near ({self.near}), got {self.far!r}")
 
 
 @dataclass

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from agent.checkpoint import RunFolder
+from agent.files import read_json
 from agent.telemetry import read_events, read_telemetry
 from cli.scenario.report import load_run_spec
 
@@ -80,10 +81,7 @@ def _report(run_dir: Path) -> dict[str, Any]:
     path = Path(run_dir) / "report.json"
     if not path.is_file():
         raise CompareError(f"{run_dir}: no report.json (run `dinerf-agent scenario report {run_dir}` first)")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise CompareError(f"{path}: not JSON ({e})") from None
+    return read_json(path, CompareError)
 
 
 def rounds_lost_per_restart(robot_dir: Path) -> list[int]:

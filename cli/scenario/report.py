@@ -22,7 +22,9 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from agent.data.views import DataError
 from agent.evaluation import Baselines, RunScores, ScoringOptions, SwarmRun, run_baselines, score_run, summarise
+from agent.files import read_json
 from agent.metrics import finite_mean
 from agent.telemetry import RoundRecord, read_telemetry
 from cli.config import from_dict
@@ -41,9 +43,16 @@ def _nan_to_none(x: Any) -> Any:
     return x
 
 
+def _run_doc(out: Path) -> dict:
+    doc = read_json(out / "run.json", DataError)
+    if not isinstance(doc, dict) or not isinstance(doc.get("scenario"), dict):
+        raise DataError(f"{out / 'run.json'}: not the run.json of `dinerf-agent scenario run` (no scenario table)")
+    return doc
+
+
 def load_run_spec(out: Path) -> ScenarioSpec:
     """The spec a run was made with (from its run.json)."""
-    doc = json.loads((out / "run.json").read_text())
+    doc = _run_doc(out)
     data = dict(doc["scenario"])
     path = data.pop("path", None)
     spec = from_dict(ScenarioSpec, data)
@@ -62,7 +71,7 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
 
     out = Path(out)
     spec = spec or load_run_spec(out)
-    run_doc = json.loads((out / "run.json").read_text())
+    run_doc = _run_doc(out)
     torch.set_num_threads(spec.report.threads)
     t0 = time.monotonic()
 

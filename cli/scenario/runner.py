@@ -19,7 +19,7 @@ Output folder::
 
     data/                the split (robot<id>/, eval/, truth.json, scene.json ...)
     swarm.toml           what every robot was given
-    robots/<id>/         each robot's run dir (telemetry.jsonl, checkpoint.pt, rounds/<k>.pt, done.json)
+    robots/<id>/         each robot's run dir (telemetry.jsonl, checkpoint.safetensors, rounds/<k>.safetensors, done.json)
     logs/robot<id>.log   each robot's stdout+stderr (appended over restarts)
     run.json             timeline: starts, faults applied (wall time, swarm round), exits, outcome
 """
@@ -102,7 +102,7 @@ def prepare_split(spec: ScenarioSpec, out: Path) -> dict:
 
 def swarm_document(spec: ScenarioSpec, scene: str, endpoints: dict[int, str] | None, name: str) -> dict:
     """The swarm TOML (as a dict) every robot of a scenario gets: the scenario's swarm sections,
-    with per-robot snapshots always on (the report evaluates rounds/<k>.pt)."""
+    with per-robot snapshots always on (the report evaluates rounds/<k>.safetensors)."""
     network = to_dict(spec.network)
     for key in ("listen", "connect"):  # per robot, on its command line
         network.pop(key)

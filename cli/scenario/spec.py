@@ -37,7 +37,7 @@ error that names it. Example (every table but ``[scenario]`` is optional)::
     [baseline]
     enabled = true                             # also train the centralised model and each robot alone
     [report]
-    eval_every = 1                             # evaluate rounds/<k>.pt every k-th round
+    eval_every = 1                             # evaluate rounds/<k>.safetensors every k-th round
     [run]
     mode = "local"                             # or netns (root); timeout_s = 600 ...
 

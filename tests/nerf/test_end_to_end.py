@@ -91,8 +91,11 @@ def test_baseline_command_writes_metrics_renders_and_checkpoint(tmp_path):
     assert 0 < metrics["seconds_per_step_median"] < 10 and -1 <= metrics["ssim"] <= 1
     png = cv2.imread(str(out / "renders" / "view_000.png"))
     assert png is not None and png.shape == (16, 32, 3)  # prediction | truth side by side
-    ckpt = torch.load(out / "checkpoint.pt", weights_only=False)
-    assert ckpt["trainer"]["step"] == 20 and "table" in "".join(ckpt["trainer"]["field"])
+    from agent.checkpoint import CHECKPOINT, load_baseline
+
+    trainer_state, cfg = load_baseline(out / CHECKPOINT)
+    assert trainer_state["step"] == 20 and "table" in "".join(trainer_state["field"])
+    assert cfg.total_steps == 20 and cfg.field.grid.num_levels == 4
 
 
 def test_baseline_on_a_missing_folder_is_one_line_and_exit_code_2(tmp_path):

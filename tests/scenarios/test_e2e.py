@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 
+from agent.checkpoint import CHECKPOINT
 from agent.telemetry import RoundRecord, read_telemetry
 from cli.scenario.compare import rounds_lost_per_restart
 from cli.scenario.netns import list_namespaces
@@ -253,7 +254,7 @@ def test_killed_robot_restarts_and_resumes(tmp_path, fault_free):
     assert run["robots"]["3"]["starts"] == 2 and run["robots"]["3"]["exit_codes"][0] == -9
     kill = next(e for e in run["events"] if e.get("fault") == "kill")
     log = (out / "logs/robot3.log").read_text()
-    assert f"resumed from {out / 'robots/3/checkpoint.pt'} at round" in log
+    assert f"resumed from {out / 'robots/3' / CHECKPOINT} at round" in log
     recs = telemetry(out, 3)
     done = [r.round for r in recs]
     assert done == sorted(set(done)) and done[-1] == rounds  # no round twice, finished

@@ -20,8 +20,10 @@ from tests.system.rogue import EXPECTED_REASONS
 pytestmark = pytest.mark.slow
 
 
-def _field_equal(sim_trainer, checkpoint_path) -> tuple[bool, float]:
-    ck = torch.load(checkpoint_path, weights_only=False)["trainer"]["field"]
+def _field_equal(sim_trainer, run_dir) -> tuple[bool, float]:
+    from agent.checkpoint import RunFolder
+
+    ck = RunFolder(run_dir, create=False).load().trainer["field"]
     mine = sim_trainer.field.state_dict()
     exact = all(torch.equal(mine[k], ck[k]) for k in mine)
     return exact, max(float((mine[k] - ck[k]).abs().max()) for k in mine)
@@ -41,7 +43,7 @@ def test_three_robots_on_a_line_match_the_in_process_simulation(tmp_path):
         swarm.stop()
     sim = simulate(swarm)
     for i in swarm.robots:
-        exact, diff = _field_equal(sim.robots[i].trainer, swarm.run_dir(i) / "checkpoint.pt")
+        exact, diff = _field_equal(sim.robots[i].trainer, swarm.run_dir(i))
         assert exact, f"robot {i}: max |theta_daemon - theta_sim| = {diff:.3e}"
     # What crossed each link, and where the time went (the figures issue 4 asks for).
     for i in swarm.robots:
@@ -79,7 +81,7 @@ def test_a_rogue_peer_is_rejected_by_reason_and_changes_nothing(tmp_path):
     assert not missing, f"never counted: {missing}; counted: {rejected}"
     sim = simulate(swarm)
     for i in swarm.robots:
-        exact, diff = _field_equal(sim.robots[i].trainer, swarm.run_dir(i) / "checkpoint.pt")
+        exact, diff = _field_equal(sim.robots[i].trainer, swarm.run_dir(i))
         assert exact, f"robot {i}: the rogue changed theta (max diff {diff:.3e})"
 
 
@@ -254,7 +256,7 @@ def test_field_box_unknown_to_the_split_comes_from_the_reference_through_the_lin
     robot 2 to robot 3, which is not the reference's neighbour. Every robot must end with the same box
     bit for bit (else C-ADMM would mix parameters of different fields: bad_signature everywhere).
     """
-    from agent.checkpoint import CHECKPOINT
+    from agent.checkpoint import RunFolder
     from agent.data.loaders import load_views
     from agent.data.split import estimate_scene_box
     from agent.geometry import box_from_center
@@ -273,7 +275,7 @@ def test_field_box_unknown_to_the_split_comes_from_the_reference_through_the_lin
         swarm.stop()
     sources = {i: [e["source"] for e in swarm.events(i) if e["event"] == "field_box"] for i in (1, 2, 3)}
     assert sources == {1: ["our own views (we are the reference)"], 2: ["robot 1"], 3: ["robot 2"]}, sources
-    boxes = {i: torch.load(swarm.run_dir(i) / CHECKPOINT, weights_only=False)["box_from_shared"] for i in (1, 2, 3)}
+    boxes = {i: RunFolder(swarm.run_dir(i), create=False).load().box_from_shared for i in (1, 2, 3)}
     c, h, _ = estimate_scene_box(load_views(swarm.root / "robot1"))
     expected = box_from_center(c, h).float()
     assert all(torch.equal(b.float(), expected) for b in boxes.values()), boxes

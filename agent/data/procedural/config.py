@@ -16,6 +16,9 @@ from agent.geometry import look_at
 
 __all__ = ["ProceduralConfig", "procedural_cameras"]
 
+MAX_SIDE = 4096  # a synthetic test scene: anything larger is a typo, and would exhaust memory
+MAX_RAYS = 2e8
+
 
 @dataclass
 class ProceduralConfig:
@@ -52,6 +55,10 @@ class ProceduralConfig:
     def __post_init__(self) -> None:
         if self.num_views < 1 or self.width < 1 or self.height < 1 or self.supersample < 1:
             raise DataError(f"procedural: num_views, width, height and supersample must be >= 1, got {self}")
+        pixels = self.num_views * self.width * self.height * self.supersample ** 2
+        if max(self.width, self.height) > MAX_SIDE or pixels > MAX_RAYS:
+            raise DataError(f"procedural: at most {MAX_SIDE} px a side and {MAX_RAYS:.0e} rays in all "
+                            f"(views x width x height x supersample^2), got {pixels:.2g}: it would not fit in memory")
         if not 1.0 <= self.fov_deg <= 170.0:
             raise DataError(f"procedural: fov_deg must be in [1, 170], got {self.fov_deg}")
         if self.radius <= 1.8:
