@@ -119,7 +119,7 @@ def test_well_formed_messages_cannot_steer_the_rounds(tmp_path):
         tel = swarm.telemetry(i)
         assert [t.round for t in tel] == [1, 2, 3, 4, 5, 6] and all(t.steps == 8 for t in tel), (i, tel)
         assert swarm.done(i)["rounds"] == 6
-        exact, diff = _field_equal(sim.robots[i].trainer, swarm.run_dir(i) / "checkpoint.pt")
+        exact, diff = _field_equal(sim.robots[i].trainer, swarm.run_dir(i))
         assert exact, f"robot {i}: the rogue changed theta (max diff {diff:.3e})"
 
 
