@@ -40,6 +40,9 @@ FORMAT = "dinerf-state"
 VERSION = "1"
 _MAX_HEADER = 100 << 20  # safetensors' own limit
 _PICKLE_MAGIC = (b"\x80", b"PK\x03\x04")  # a pickle (protocol 2+), a torch.save zip
+# A safetensors file opens with its header length (u64 LE) and then '{': a length whose low byte is
+# 0x80 starts like a pickle, so the JSON brace decides first.
+_SAFETENSORS_BRACE = 8
 
 
 class CheckpointError(RuntimeError):
@@ -103,7 +106,8 @@ def _read_bytes(path: Path) -> bytes:
         raise CheckpointError(path, f"cannot be read ({e.strerror or e})") from None
     if not data:
         raise CheckpointError(path, "is empty (a save that never completed?)")
-    if data.startswith(_PICKLE_MAGIC):
+    looks_safetensors = data[_SAFETENSORS_BRACE:_SAFETENSORS_BRACE + 1] == b"{"
+    if data.startswith(_PICKLE_MAGIC) and not looks_safetensors:
         raise CheckpointError(path, "is a pickle (torch.save), which dinerf never loads: it could run code")
     return data
 
