@@ -69,6 +69,11 @@ class Bootstrap:
         self._on_box = on_box  # the daemon rebuilds its model spec from the new box
         self._peer_expect = codec.Expectation(swarm=keys.swarm, allowed_senders=frozenset(membership.topology.ids),
                                               max_keyframe_bytes=_keyframe_cap(align))
+        self._summaries: dict[int, Summary] = {}  # neighbours' keyframe summaries, fetched once each
+        self._boxes: dict[int, np.ndarray | None] = {}  # the field box each neighbour sent
+        self._own: Summary | None = None
+        self._serve: Callable[[], int] | None = None  # re-serves our summary (with the box, once known)
+        self._summary_width = summary_views.width  # the width our summary's images had
 
     # ------------------------------------------------------------------ the field box
     def adopt_box(self, box_from_shared: np.ndarray | Tensor, source: str) -> None:
@@ -118,6 +123,7 @@ class Bootstrap:
             return len(data)
 
         size = serve()
+        self._own, self._serve = own, serve
         self.report.event("keyframes", bytes=size, image_bytes=msg.image_bytes, points=len(own),
                           image_width=views.width, seconds=time.monotonic() - t0)
         self.report.say(f"keyframe summary: {len(own)} points, {size / 1e3:.0f} kB "
@@ -127,9 +133,38 @@ class Bootstrap:
             return
         self._align_with_neighbours(own, serve, t0)
 
+    def retry(self, from_field: bool) -> bool:
+        """One more attempt of an unaligned robot: with every neighbour (some may have aligned
+        since), from our summary or, ``from_field``, from one of renders of our own trained field
+        (its depth places every feature, where our images alone could triangulate too few)."""
+        if self._own is None or self._serve is None or self.box_pending:
+            return False
+        own = self._field_summary() if from_field else self._own
+        tried: dict[int, str] = {}
+        best = self._best_match(own, self.board.peers(), self._summaries, self._boxes, tried)
+        if best is None:
+            self.board.set(alignment_detail=f"retrying ({'own field' if from_field else 'summaries'}): "
+                                            + "; ".join(f"{j}: {r}" for j, r in sorted(tried.items()))[:200])
+            return False
+        self._start_from(best, self._boxes, self._serve, time.monotonic(),
+                         how=" from renders of its own field" if from_field else " on a retry")
+        return True
+
+    @torch.no_grad()
+    def _field_summary(self) -> Summary:
+        """A keyframe summary of renders of our field through our own cameras, with their depth."""
+        tr = self.trainer
+        scale = self._summary_width / tr.views.width
+        k = tr.camera_intrinsics().cpu() * scale
+        w, h = self._summary_width, round(tr.views.height * scale)
+        cams = tr.cameras_shared().cpu()  # = local while unaligned (the identity pose)
+        renders = [tr.render(cams[i], k[i], w, h) for i in range(len(cams))]
+        views = Views(torch.stack([r["rgb"].cpu() for r in renders]), cams, k, list(tr.views.names),
+                      torch.stack([r["depth"].cpu() * (r["opacity"].cpu() > 0.5) for r in renders]), {})
+        return summarise(views, points_source="depth", cfg=self.align)
+
     def _align_with_neighbours(self, own: Summary, serve: Callable[[], int], t0: float) -> None:
-        summaries: dict[int, Summary] = {}
-        boxes: dict[int, np.ndarray | None] = {}  # the field box each neighbour sent
+        summaries, boxes = self._summaries, self._boxes
         tried: dict[int, str] = {}
         deadline = time.monotonic() + self.timing.align_timeout_s
         while time.monotonic() < deadline and not self.stop.is_set():
@@ -148,7 +183,8 @@ class Bootstrap:
             self._settle_box_without_pose(boxes, serve)
         self.board.set(alignment=Alignment.UNALIGNED, alignment_detail="coarse step found nothing")
         self.report.event("alignment_failed", reason=reason)
-        self.report.say(f"coarse alignment found nothing ({reason}); starting from the identity")
+        self.report.say(f"coarse alignment found nothing ({reason}): unaligned, training alone and out of consensus "
+                        "until a retry places our frame")
 
     def _best_match(self, own: Summary, statuses: dict[int, Status], summaries: dict[int, Summary],
                     boxes: dict[int, np.ndarray | None], tried: dict[int, str]):
@@ -197,7 +233,8 @@ class Bootstrap:
             return False
         return True
 
-    def _start_from(self, best, boxes: dict[int, np.ndarray | None], serve: Callable[[], int], t0: float) -> None:
+    def _start_from(self, best, boxes: dict[int, np.ndarray | None], serve: Callable[[], int], t0: float,
+                    how: str = "") -> None:
         # sigma is that of the last hop only: j's own uncertainty is not in its status.
         j, inliers, T, sigma = best
         if self.box_pending:
@@ -205,10 +242,10 @@ class Bootstrap:
             serve()  # with the box: robots aligning through us need it too
         self.trainer.pose.set_initial(T.float(), sigma_deg=sigma)
         with torch.no_grad():
-            self.board.set(alignment=Alignment.COARSE, alignment_detail=f"via {j}: {inliers} inliers",
+            self.board.set(alignment=Alignment.COARSE, alignment_detail=f"via {j}{how}: {inliers} inliers",
                            pose7=pose_summary(self.trainer.pose.matrix())["params7"])
         lr_scale = self.trainer.pose_lr_scale()
         self.report.event("aligned", via=j, inliers=inliers, seconds=time.monotonic() - t0, pose_lr_scale=lr_scale,
-                          rotation_sigma_deg=sigma if math.isfinite(sigma) else None)
-        self.report.say(f"coarse alignment via robot {j}: {inliers} inliers, rotation "
+                          rotation_sigma_deg=sigma if math.isfinite(sigma) else None, how=how.strip() or "start")
+        self.report.say(f"coarse alignment via robot {j}{how}: {inliers} inliers, rotation "
                         f"sigma {sigma:.3f} deg (pose learns at {lr_scale:.3g}x)")

@@ -72,11 +72,17 @@ class DaemonConfig:
     resend_delay_s: float = 1.0  # re-push our snapshot this long after a neighbour's link appears
     # Initial relative pose: "identity" (the paper) or "coarse": match compact keyframe summaries
     # (descriptors + 3-D points, never images) with neighbours whose pose is already known.
-    initial_pose: Literal["identity", "coarse"] = "identity"
+    # None: what the swarm's frames call for (agent.frames: identity when shared, else coarse)
+    initial_pose: Literal["identity", "coarse"] | None = None
     align_timeout_s: float = 60.0  # give up on the coarse step after this long (identity start)
     # Width of the images the keyframe summary is computed from; None: the folder's own size, even
     # when training runs smaller (sharper features place a neighbour's frame more precisely).
     summary_width: int | None = None
+    # An unaligned robot (its coarse step found nothing) trains alone, out of consensus, and
+    # retries every this many rounds (0 = never); after realign_from_field_after rounds its
+    # retries match renders of its own trained field, whose depth places every feature.
+    realign_every: int = 2
+    realign_from_field_after: int = 4
 
     def __post_init__(self) -> None:
         if self.round_timeout_s <= 0 or self.heartbeat_s <= 0 or self.threads < 1:
@@ -98,6 +104,10 @@ class SwarmIdentity:
 
     name: str
     topology: Topology
+
+
+def _outside_consensus(alignment: Alignment) -> bool:
+    return alignment in (Alignment.UNALIGNED, Alignment.PENDING)
 
 
 class Stop(Exception):
@@ -133,6 +143,9 @@ class Daemon:
                  summary_views: Views | None = None, align: AlignConfig | None = None) -> None:
         """summary_views: the same views at the resolution the keyframe summary is computed from
         (``cfg.summary_width``); None: the training views."""
+        if cfg.initial_pose is None or training.train.pose.mode is None:
+            raise ValueError("daemon.initial_pose and training.train.pose.mode are unset: resolve them from the "
+                             "swarm's frames first (agent.frames.resolve_pose_settings; load_swarm_file does)")
         if robot_id not in swarm.topology.ids:
             raise ValueError(f"robot {robot_id} is not in the swarm's robots {list(swarm.topology.ids)}")
         if box_from_shared is None and cfg.initial_pose != "coarse":
@@ -194,6 +207,38 @@ class Daemon:
         """The round neighbour j says, in its newest heartbeat, that it has completed."""
         status = self.board.peers().get(j)
         return None if status is None else status.round
+
+    def _in_consensus(self) -> bool:
+        """Whether this robot's frame is placed (reference, identity by configuration, coarse)."""
+        return not _outside_consensus(self.board.own()["alignment"])
+
+    def _consensus_peers(self) -> set[int]:
+        """Reachable neighbours a round waits for and averages with: all but the unaligned (a
+        neighbour still aligning is waited for: it joins as soon as its frame is placed)."""
+        peers = self.board.peers()
+        return {j for j in self.presence.reachable() if (st := peers.get(j)) is None
+                or st.alignment is not Alignment.UNALIGNED}
+
+    def _barrier(self) -> tuple[dict[int, ThetaSnapshot], float]:
+        """The round's barrier; what it returns only from neighbours still in consensus when it ends
+        (one that turned unaligned meanwhile is never averaged with)."""
+        heard, waited = self.exchange.barrier(self.round, self._consensus_peers)
+        peers = self._consensus_peers()
+        return {j: m for j, m in heard.items() if j in peers}, waited
+
+    def _maybe_realign(self, heard: dict[int, ThetaSnapshot]) -> None:
+        """Every few rounds an unaligned robot tries again; placed, it takes its neighbours' model
+        (its own was trained in its own frame) and enters consensus."""
+        n = self.cfg.realign_every
+        if n <= 0 or self.round % n:
+            return
+        if not self.bootstrap.retry(from_field=self.round >= self.cfg.realign_from_field_after):
+            return
+        if heard:
+            self._adopt_mean(list(heard.values()), reset_duals=True)
+        self.trainer.reset_occupancy()
+        self.report.event("entered_consensus", neighbours=sorted(heard))
+        self.report.say(f"aligned at round {self.round}: taking the neighbours' model {sorted(heard)}, in consensus now")
 
     def _membership_changed(self, m: Membership) -> None:
         self.mailbox.notify()
@@ -298,8 +343,9 @@ class Daemon:
             self.report.event("start", resumed=resumed, alive=sorted(self.membership.alive),
                               reference=self.membership.reference)
             stats0 = self.net.stats()
-            self._publish_theta(self.round)
-            heard, _ = self.exchange.barrier(self.round, self.presence.reachable)
+            if self._in_consensus():
+                self._publish_theta(self.round)
+            heard = self._barrier()[0]
             heard = self._catch_up(heard)
             self.mailbox.advance(self.round)
             while self.round < self.training.rounds:
@@ -325,21 +371,25 @@ class Daemon:
     def _one_round(self, heard_in: dict[int, ThetaSnapshot], stats_before: dict) -> int:
         k = self.round
         t0 = time.monotonic()
+        aligned = self._in_consensus()
         self.board.set(phase="training")
-        self.trainer.begin_round(k, _to_torch(heard_in))
+        self.trainer.begin_round(k, _to_torch(heard_in if aligned else {}))
         stats = self.trainer.train(self.training.steps_per_round, on_step=self._check_stop)
         self.round = k + 1
         t_compute = self._round_compute_s = time.monotonic() - t0
-        self._publish_theta(self.round)
+        if aligned:  # an unaligned robot's field is in its own frame: nobody may average with it
+            self._publish_theta(self.round)
         self.board.set(phase="waiting")
-        heard, waited = self.exchange.barrier(self.round, self.presence.reachable)
+        heard, waited = self._barrier()  # unaligned: for the pace only
         self._apply_reference()  # a failover seen while waiting takes effect now, not next round
-        self.trainer.end_round(_to_torch(heard))
+        self.trainer.end_round(_to_torch(heard if aligned else {}))
         heard = self._catch_up(heard)
         self.mailbox.advance(self.round)  # slide the window: keeps accepting up to round + max_ahead
+        if not aligned:
+            self._maybe_realign(heard)
         self._last_heard = heard
         self._checkpoint()
-        record = self._round_record(stats, sorted(heard), stats_before, t_compute, waited)
+        record = self._round_record(stats, sorted(heard) if aligned else [], stats_before, t_compute, waited)
         self._telemetry.write_line(record.to_json())
         net = self.net.stats()
         self.board.set(phase="round_done", loss=stats.loss, psnr=record.psnr, heard=record.heard,
@@ -404,7 +454,8 @@ class Daemon:
         target = min(rounds[(len(rounds) - 1) // 2], self.training.rounds)
         if target > self.round:
             fresh_start = self.round == 0 and self.trainer.step == 0
-            adopt = fresh_start or self._is_stale(target)
+            # an unaligned robot keeps its own field: the neighbours' lives in a frame it cannot place yet
+            adopt = (fresh_start or self._is_stale(target)) and self._in_consensus()
             if adopt:  # a new robot starts from the swarm's current model, not from theta^0
                 self._adopt_mean([m for m in newest.values() if m.round == target], reset_duals=not fresh_start)
             self.report.event("joined", from_round=self.round, to_round=target, fresh=fresh_start, adopted=adopt)
@@ -440,7 +491,7 @@ class Daemon:
         snapshot. Training through costs no steps; skipping keeps it from timing out round after
         round when training through would take too long (``plan_catch_up``).
         """
-        newest = {j: self.exchange.credible_round(j, self.round) for j in self.presence.reachable()}
+        newest = {j: self.exchange.credible_round(j, self.round) for j in self._consensus_peers()}
         plan = plan_catch_up(self.round, newest, self._round_compute_s, self.cfg.round_timeout_s / 2)
         if plan is None:
             return heard

@@ -22,7 +22,8 @@ __all__ = ["PoseConfig", "RelativePose"]
 
 @dataclass
 class PoseConfig:
-    mode: Literal["fixed", "se3", "sim3"] = "fixed"
+    # fixed | se3 | sim3; None: what the swarm's frames call for (agent.frames); fixed for one robot
+    mode: Literal["fixed", "se3", "sim3"] | None = None
     lr_rotation: float = 2e-3  # radians per step (Adam), about the box centre
     lr_translation: float = 2e-3  # box units per step
     lr_scale: float = 1e-3  # log-scale per step (sim3 only)
@@ -46,7 +47,7 @@ class RelativePose(nn.Module):
 
     def __init__(self, initial: Tensor, box_from_shared: Tensor, mode: str) -> None:
         super().__init__()
-        self.mode = mode
+        self.mode = mode or "fixed"  # unset outside a swarm: a single robot has no relative pose
         self.register_buffer("base", initial.detach().to(torch.float32).clone())  # T0 [4, 4]
         self.register_buffer("box", box_from_shared.to(torch.float32).clone())  # B [4, 4]
         self.register_buffer("box_inv", sim3_inverse(box_from_shared.double()).float())
@@ -55,7 +56,7 @@ class RelativePose(nn.Module):
         self.log_scale = nn.Parameter(torch.zeros(()))
         self.from_estimate = False  # T0 came from an estimate (coarse alignment), not the identity
         self.estimate_sigma_deg = math.nan  # that estimate's rotation 1-sigma, when it stated one
-        self.set_trainable(mode != "fixed")
+        self.set_trainable(self.mode != "fixed")
 
     def set_trainable(self, trainable: bool) -> None:
         self.phi.requires_grad_(trainable)

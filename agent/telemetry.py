@@ -80,10 +80,13 @@ class RoundRecord:
     def log_line(self, rounds: int) -> str:
         """The operator's line for this round (the daemon prints one per round, after ``[robot i]``)."""
         psnr = f"{self.psnr:5.2f} dB" if self.psnr is not None else "   n/a  "
+        state = "reference" if self.elected else (self.alignment or "?")
+        if state == "unaligned":
+            state = "UNALIGNED: alone, out of consensus"
         return (
             f"round {self.round:3d}/{rounds} | loss {self.loss:.5f} | psnr {psnr} | "
-            f"pose {self.pose_rotation_deg:6.2f} deg, |t| {self.translation_norm:.3f}, s {self.pose_scale:.3f}"
-            f"{' (ref)' if self.elected else ''} | heard {self.heard}/{self.reachable} | "
+            f"pose est {self.pose_rotation_deg:6.2f} deg, |t| {self.translation_norm:.3f}, s {self.pose_scale:.3f}"
+            f" ({state}) | heard {self.heard}/{self.reachable} | "
             f"in {sum(self.bytes_in.values()) / 1e6:.1f} MB out {self.bytes_out / 1e6:.1f} MB | "
             f"compute {self.seconds_compute:.1f} s wait {self.seconds_wait:.1f} s"
         )

@@ -240,6 +240,14 @@ class RobotTrainer:
         if reset_duals and self.consensus is not None:
             self.consensus.reset_duals()
 
+    @torch.no_grad()
+    def reset_occupancy(self) -> None:
+        """Rebuild the occupancy grid from the current field (its theta was just replaced): the old
+        grid pruned space by the field that is gone."""
+        self.grid = OccupancyGrid(self.cfg.occupancy, self.device)
+        lw = self.level_weights()
+        self.grid.update(0, lambda x: self.field.density(x, lw)[0], self.generator)
+
     def begin_round(self, round_index: int, neighbours: Mapping[int, Mapping[str, Tensor]]) -> None:
         """Anchors of round k from theta_i^k (the current parameters) and the theta_j^k heard."""
         if self.consensus is None:

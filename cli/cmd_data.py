@@ -65,11 +65,13 @@ def split(
     cfg = apply_overrides(cfg, sets)
     views, result = split_dataset(data, cfg, width)
     write_split(result, out, overwrite=force)
+    from agent.frames import frames_of_split
     from cli.swarm_file import SWARM_FILE, loopback_endpoints, swarm_doc, write_swarm_file
 
     ids = sorted(result.robots)
     name = "".join(c if c.isalnum() or c in "-_" else "-" for c in Path(out).resolve().name) or "swarm"
-    write_swarm_file(Path(out) / SWARM_FILE, swarm_doc(name, ids, topology,
+    frames = frames_of_split(cfg.frame, cfg.images_only)
+    write_swarm_file(Path(out) / SWARM_FILE, swarm_doc(name, ids, frames, topology,
                                                       network={"endpoints": loopback_endpoints(ids, port_base)}),
                      header="written by `dinerf-agent split`; edit freely (see cli/swarm_file.py)")
     _print_split(result, f"{len(views)} views of {data} -> {out}")

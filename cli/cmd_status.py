@@ -19,9 +19,9 @@ from cli.main import app
 def status_table(latest: dict, now: float, swarm_name: str) -> Table:
     """One row per robot from its newest Status (``latest``: id -> (Status, received monotonic))."""
     table = Table(title=f"swarm {swarm_name} — {len(latest)} robot(s) heard")
-    for col in ("robot", "round", "phase", "loss", "psnr", "pose (deg, |t|, s)", "heard", "in MB", "out MB",
-                "rejected", "ref", "alive", "seen"):
-        table.add_column(col, justify="right" if col not in ("phase", "heard", "alive") else "left")
+    for col in ("robot", "round", "phase", "loss", "psnr", "pose est. (deg, |t|, s)", "frame", "heard", "in MB",
+                "out MB", "rejected", "ref", "alive", "seen"):
+        table.add_column(col, justify="right" if col not in ("phase", "frame", "heard", "alive") else "left")
     for rid in sorted(latest):
         msg, seen = latest[rid]
         log_s, phi, t = msg.pose[0], msg.pose[1:4], msg.pose[4:7]
@@ -31,6 +31,7 @@ def status_table(latest: dict, now: float, swarm_name: str) -> Table:
             "-" if msg.loss is None else f"{msg.loss:.4f}",
             "-" if msg.psnr is None else f"{msg.psnr:.2f}",
             f"{rot:.2f}, {math.sqrt(sum(x * x for x in t)):.3f}, {math.exp(log_s):.3f}",
+            _frame_state(msg),
             ",".join(map(str, msg.neighbours_heard)) or "-",
             f"{msg.bytes_in / 1e6:.1f}", f"{msg.bytes_out / 1e6:.1f}",
             str(sum(msg.rejected.values())), str(msg.reference),
@@ -38,6 +39,14 @@ def status_table(latest: dict, now: float, swarm_name: str) -> Table:
             f"{now - seen:.1f} s ago",
         )
     return table
+
+
+def _frame_state(msg) -> str:
+    """How the robot's frame is placed; an unaligned robot is out of consensus, and says so."""
+    state = msg.alignment.value
+    if state == "unaligned":
+        return "[red]UNALIGNED (alone)[/red]"
+    return state + (f": {msg.alignment_detail}" if msg.alignment_detail else "")
 
 
 @app.command()

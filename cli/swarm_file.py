@@ -25,13 +25,16 @@ A scenario.toml has the same sections (cli.scenario.spec), so one setting has on
 
 from __future__ import annotations
 
+import dataclasses
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 from agent.align import AlignConfig
 from agent.daemon import DaemonConfig, SwarmIdentity
 from agent.data.sfm import SfmConfig
+from agent.frames import resolve_pose_settings
 from agent.swarm import SwarmTrainingConfig
 from cli.config import ConfigError, apply_overrides, from_dict, load_toml, to_dict
 from protocol.keys import validate_swarm
@@ -45,6 +48,8 @@ SWARM_FILE = "swarm.toml"
 class SwarmSection:
     name: str
     robots: list[int]
+    # which frames the robots' poses are in: shared | local | sfm (agent.frames); required
+    frames: Literal["shared", "local", "sfm"] | None = None
     scene: str = "scene.json"
 
 
@@ -105,20 +110,28 @@ def load_swarm_file(path: Path, overrides: list[str] = ()) -> tuple[SwarmFile, P
                           "(kind = \"ring\", edges = [[1, 2]], hub = 1), as in scenario.toml")
     cfg = from_dict(SwarmFile, data, "")
     cfg = apply_overrides(cfg, list(overrides))
-    _validate(cfg)
-    return cfg, path.resolve().parent
+    return _validate(cfg), path.resolve().parent
 
 
-def _validate(cfg: SwarmFile) -> None:
+def _validate(cfg: SwarmFile) -> SwarmFile:
+    """Check the file as a whole; returns it with the pose settings its frames call for."""
     try:
         validate_swarm(cfg.swarm.name)
     except ValueError as e:
         raise ConfigError(f"swarm.name: {e}") from None
     cfg.graph()  # validates robots/edges
+    if cfg.swarm.frames is None:
+        raise ConfigError(f"swarm.frames: say which frames the robots' poses are in: {FRAMES_HELP}")
     try:
-        cfg.align.for_pose_mode(cfg.training.train.pose.mode)
+        training, daemon = resolve_pose_settings(cfg.swarm.frames, cfg.training, cfg.daemon)  # type: ignore[arg-type]
+        cfg.align.for_pose_mode(training.train.pose.mode)
     except ValueError as e:
         raise ConfigError(str(e)) from None
+    return dataclasses.replace(cfg, training=training, daemon=daemon)
+
+
+FRAMES_HELP = ("'shared' (one frame for all, e.g. a split with --frame world), 'local' (each robot its own; "
+               "poses are learnt from a coarse start) or 'sfm' (images only: each robot's own SfM)")
 
 
 def find_swarm_file(data_dir: Path) -> Path | None:
@@ -143,15 +156,15 @@ def write_swarm_file(path: Path, doc: dict, header: str = "") -> Path:
     return path
 
 
-def swarm_doc(name: str, robots: list[int], topology: TopologyConfig | str = "full", scene: str = "scene.json",
-              **sections: dict) -> dict:
+def swarm_doc(name: str, robots: list[int], frames: str, topology: TopologyConfig | str = "full",
+              scene: str = "scene.json", **sections: dict) -> dict:
     """A swarm file's sections as plain data: [swarm], [topology] and any of network, training,
     daemon, align, sfm (dicts of the settings that differ from the defaults, or everything)."""
     topo = TopologyConfig(topology) if isinstance(topology, str) else topology
     unknown = sorted(set(sections) - {"network", "training", "daemon", "align", "sfm"})
     if unknown:
         raise ValueError(f"not swarm-file sections: {unknown}")
-    return {"swarm": {"name": name, "robots": list(robots), "scene": scene}, "topology": to_dict(topo),
+    return {"swarm": {"name": name, "robots": list(robots), "frames": frames, "scene": scene}, "topology": to_dict(topo),
             **{k: v for k, v in sections.items() if v}}
 
 

@@ -108,7 +108,7 @@ def swarm_document(spec: ScenarioSpec, scene: str, endpoints: dict[int, str] | N
         network.pop(key)
     if endpoints:
         network["endpoints"] = {str(k): v for k, v in endpoints.items()}
-    return swarm_doc(name, spec.ids, spec.topology, scene, network=network, training=to_dict(spec.training),
+    return swarm_doc(name, spec.ids, spec.frames, spec.topology, scene, network=network, training=to_dict(spec.training),
                      daemon={**to_dict(spec.daemon), "keep_rounds": True}, align=to_dict(spec.align),
                      sfm=to_dict(spec.sfm))
 

@@ -55,6 +55,7 @@ from typing import Any, Literal
 
 from agent.align import AlignConfig
 from agent.daemon import DaemonConfig
+from agent.frames import frames_of_split, resolve_pose_settings
 from agent.data.sfm import SfmConfig
 from agent.data.split import SplitConfig
 from agent.swarm import SwarmTrainingConfig
@@ -247,6 +248,7 @@ class ScenarioSpec:
         if self.split.robots != self.robots or self.split.ids is not None:
             self.split = dataclasses.replace(self.split, robots=self.robots, ids=None)  # ids 1..robots
         self._check_images()
+        self.training, self.daemon = resolve_pose_settings(self.frames, self.training, self.daemon)
         self.graph()  # validates kind/edges/hub against the ids
         self.network.validate()
         self.align.for_pose_mode(self.training.train.pose.mode)
@@ -256,6 +258,11 @@ class ScenarioSpec:
     @property
     def ids(self) -> list[int]:
         return list(range(1, self.robots + 1))
+
+    @property
+    def frames(self) -> str:
+        """The frames the split puts the robots in (agent.frames)."""
+        return frames_of_split(self.split.frame, self.split.images_only)
 
     @property
     def reference_id(self) -> int:
@@ -283,15 +290,6 @@ class ScenarioSpec:
             if w < self.width:
                 raise ValueError(f"split.robot_image_width ({w}) must be >= scenario.width ({self.width}): it is "
                                  "for giving the robots more pixels than the evaluation, not fewer")
-        if self.split.images_only:
-            initial = self.daemon.initial_pose
-            if initial != "coarse":
-                raise ValueError(f"split.images_only: every robot's frame is its own SfM's, so the relative poses "
-                                 f"need a coarse start: set daemon.initial_pose = \"coarse\" (got {initial!r})")
-            mode = self.training.train.pose.mode
-            if mode != "sim3":
-                raise ValueError(f"split.images_only: SfM frames have arbitrary scales, so the relative poses must "
-                                 f"be Sim(3): set training.train.pose.mode = \"sim3\" (got {mode!r})")
 
     def _check_faults(self) -> None:
         ids, rounds = set(self.ids), self.rounds

@@ -83,7 +83,8 @@ def test_spec_demands_what_images_only_robots_need(tmp_path):
     assert s.split.images_only and s.split.robot_image_width == 48
     assert s.split.images_only
     assert 'initial_pose = "coarse"' in error(tmp_path, BASE.replace('initial_pose = "coarse"', 'initial_pose = "identity"'))
-    assert 'initial_pose = "coarse"' in error(tmp_path, BASE.replace('[daemon]\ninitial_pose = "coarse"\n', ""))
+    # unset, the frames decide: SfM frames start from the coarse alignment
+    assert spec_from(tmp_path, BASE.replace('[daemon]\ninitial_pose = "coarse"\n', "")).daemon.initial_pose == "coarse"
     assert 'mode = "sim3"' in error(tmp_path, BASE.replace('mode = "sim3"', 'mode = "se3"'))
     assert ">= scenario.width" in error(tmp_path, BASE.replace("robot_image_width = 48", "robot_image_width = 16"))
     assert "needs scenario.width" in error(tmp_path, BASE.replace("width = 24\nrobots", "robots"))

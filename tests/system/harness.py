@@ -146,6 +146,7 @@ def make_swarm(tmp: Path, robots: int = 3, topology: str = "full", frame: str = 
     """Split a tiny procedural scene into robot folders and write the swarm.toml for them."""
     from agent.data.loaders import load_views
     from agent.data.split import SplitConfig, split_views, write_split
+    from agent.frames import frames_of_split
     from cli.swarm_file import loopback_endpoints, swarm_doc, write_swarm_file
 
     root = tmp / "swarm"
@@ -156,7 +157,7 @@ def make_swarm(tmp: Path, robots: int = 3, topology: str = "full", frame: str = 
     daemon_cfg = {"startup_wait_s": 15.0, "round_timeout_s": 30.0, "linger_s": 1.0, "threads": 1}
     name = f"test-{os.getpid()}-{int(time.time() * 1000) % 10**6}"
     write_swarm_file(root / "swarm.toml", swarm_doc(
-        name, ids, topology, network={"endpoints": loopback_endpoints(ids, free_port_base(max(ids)))},
+        name, ids, frames_of_split(frame, False), topology, network={"endpoints": loopback_endpoints(ids, free_port_base(max(ids)))},
         training=merge(TINY_TRAINING, training or {}), daemon=merge(daemon_cfg, daemon or {})))
     return Swarm(root, ids)
 

@@ -7,6 +7,7 @@ waiting on the network versus computing, failover latency.
 from __future__ import annotations
 
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -314,3 +315,64 @@ def test_a_neighbour_whose_token_outlives_its_link_is_not_waited_for(tmp_path):
         print(f"robot {i}: waits per round with a mute neighbour {waits} s (silent_after_s {silent_after})")
         assert max(waits) < silent_after + 2, waits  # never the 30 s round timeout
         assert any(e["event"] == "silent" and e["sender"] == 3 for e in swarm.events(i))
+
+
+def _without_robot(swarm, robot: int, tmp_path):
+    """The same robot folders and settings, with ``robot`` left out of the roster."""
+    import shutil
+    import tomllib
+
+    from cli.swarm_file import write_swarm_file
+    from tests.system.harness import Swarm
+
+    root = tmp_path / "without"
+    shutil.copytree(swarm.root, root, ignore=shutil.ignore_patterns("run", "*.log"))
+    doc = tomllib.loads((root / "swarm.toml").read_text())
+    doc["swarm"]["robots"] = [i for i in doc["swarm"]["robots"] if i != robot]
+    doc["swarm"]["name"] += "-without"
+    write_swarm_file(root / "swarm.toml", doc)
+    return Swarm(root, doc["swarm"]["robots"])
+
+
+def test_a_robot_that_cannot_align_is_quarantined_and_the_others_lose_nothing(tmp_path):
+    """Robot 3's images show nothing the others saw (noise): its coarse step fails. It trains
+    alone, out of consensus, says so in its log and status; the two others end as well as the
+    same swarm without it."""
+    import cv2
+    import numpy as np
+
+    from agent.checkpoint import load_for_eval
+
+    swarm = make_swarm(tmp_path, robots=3, topology="full", frame="random", views=90, width=64, overlap=0.4,
+                       training={"rounds": 4, "steps_per_round": 12, "image_width": 32, "consensus": {"rho0": 1e-5},
+                                 "train": {"pose": {"mode": "se3"}}},
+                       daemon={"align_timeout_s": 20.0})
+    rng = np.random.default_rng(0)
+    for png in sorted((swarm.root / "robot3").rglob("*.png")):
+        img = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(png), rng.integers(0, 256, img.shape, dtype=np.uint8))
+    alone = _without_robot(swarm, 3, tmp_path)
+    for s in (swarm, alone):
+        try:
+            s.start_all()
+            if s is swarm:
+                swarm.wait_round(3, 1)
+                out = subprocess.run([sys.executable, "-m", "cli", "status", "--swarm", str(swarm.swarm_file),
+                                      "--once", "2"], cwd=REPO, capture_output=True, text=True, timeout=60,
+                                     env=dict(os.environ, COLUMNS="250"))
+            s.wait_all()
+        finally:
+            s.stop()
+    assert "UNALIGNED" in out.stdout and "coarse" in out.stdout, out.stdout + out.stderr
+    tel3 = swarm.telemetry(3)
+    assert all(t.alignment == "unaligned" and t.heard == [] for t in tel3), tel3
+    assert "UNALIGNED" in swarm.log_text(3)
+    for i in (1, 2):
+        assert all(3 not in t.heard and t.alignment in ("reference", "coarse") for t in swarm.telemetry(i))
+        sim_holdout = load_for_eval(alone.run_dir(i), alone.root / f"robot{i}")
+        with_3 = load_for_eval(swarm.run_dir(i), swarm.root / f"robot{i}")
+        holdout = with_3.views  # its own views, in its frame (the same folder in both runs)
+        p_with = _own_holdout_psnr(with_3, holdout)
+        p_without = _own_holdout_psnr(sim_holdout, holdout)
+        print(f"robot {i}: own views {p_with:.2f} dB beside the unaligned robot 3, {p_without:.2f} dB without it")
+        assert abs(p_with - p_without) <= 0.3

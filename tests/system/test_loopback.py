@@ -70,7 +70,7 @@ def run_in_process(swarm, training_cfg, daemon_cfg, links=None) -> dict[int, Dae
 def test_a_line_of_three_in_one_process_matches_the_simulation(tmp_path):
     torch.set_num_threads(1)
     swarm = make_swarm(tmp_path, robots=3, topology="line")
-    run_in_process(swarm, None, from_dict(DaemonConfig, {"startup_wait_s": 5.0, "round_timeout_s": 30.0,
+    run_in_process(swarm, None, from_dict(DaemonConfig, {"startup_wait_s": 5.0, "round_timeout_s": 30.0, "initial_pose": "identity",
                                                         "linger_s": 0.2, "threads": 1}))
     sim = simulate(swarm)
     for i in swarm.robots:
