@@ -99,7 +99,7 @@ class Bootstrap:
         self.box_pending = False
         self._on_box()
         self.report.event("field_box", source="own estimate (no neighbour sent one)")
-        self.report.say("no neighbour sent the field box: keeping our own estimate; "
+        self.report.warn("no neighbour sent the field box: keeping our own estimate; "
                         "neighbours with another box will refuse our snapshots (bad_signature)")
 
     # ------------------------------------------------------------------ coarse alignment
@@ -183,7 +183,7 @@ class Bootstrap:
             self._settle_box_without_pose(boxes, serve)
         self.board.set(alignment=Alignment.UNALIGNED, alignment_detail="coarse step found nothing")
         self.report.event("alignment_failed", reason=reason)
-        self.report.say(f"coarse alignment found nothing ({reason}): unaligned, training alone and out of consensus "
+        self.report.warn(f"coarse alignment found nothing ({reason}): unaligned, training alone and out of consensus "
                         "until a retry places our frame")
 
     def _best_match(self, own: Summary, statuses: dict[int, Status], summaries: dict[int, Summary],

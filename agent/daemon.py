@@ -22,9 +22,10 @@ shared frame, the field and every other robot's pose stay valid.
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Literal, Mapping
 
@@ -38,7 +39,7 @@ from agent.checkpoint import CheckpointError, RobotCheckpoint, RunFolder, load_i
 from agent.data.views import Views
 from agent.geometry import pose_summary
 from agent.swarm import RobotSetup, SwarmTrainingConfig, build_robot
-from agent.telemetry import EventLog, JsonLines, Reporter, RoundRecord, StatusBoard
+from agent.telemetry import EventLog, JsonLines, PlateauRule, Reporter, RoundRecord, StatusBoard
 from protocol import codec
 from protocol.exchange import ExchangeTiming, SnapshotExchange, plan_catch_up
 from protocol.keys import Keys
@@ -83,6 +84,7 @@ class DaemonConfig:
     # retries match renders of its own trained field, whose depth places every feature.
     realign_every: int = 2
     realign_from_field_after: int = 4
+    plateau: PlateauRule = field(default_factory=PlateauRule)  # when a flat, high loss is worth a warning
 
     def __post_init__(self) -> None:
         if self.round_timeout_s <= 0 or self.heartbeat_s <= 0 or self.threads < 1:
@@ -140,6 +142,7 @@ class Daemon:
     def __init__(self, robot_id: int, views: Views, box_from_shared: Tensor | None, swarm: SwarmIdentity,
                  training: SwarmTrainingConfig, cfg: DaemonConfig, network: Network, run_dir: Path,
                  initial_pose: Tensor | None = None, log: Callable[[str], None] = print,
+                 warn: Callable[[str], None] | None = None,
                  summary_views: Views | None = None, align: AlignConfig | None = None) -> None:
         """summary_views: the same views at the resolution the keyframe summary is computed from
         (``cfg.summary_width``); None: the training views."""
@@ -161,7 +164,7 @@ class Daemon:
         self.round = 0
         self.elected = False  # pose frozen because this robot is the reference
         self._stop = threading.Event()
-        self.report = Reporter(robot_id, log, EventLog(self.folder.events, robot_id), lambda: self.round)
+        self.report = Reporter(robot_id, log, EventLog(self.folder.events, robot_id), lambda: self.round, warn)
         self._telemetry = JsonLines(self.folder.telemetry)
         box_known = box_from_shared is not None
         if not box_known:  # a provisional box from our own views (the right one if we are the reference)
@@ -192,6 +195,8 @@ class Daemon:
                                    self._model_changed)
         self._model_changed()
         self._last_heard: dict[int, ThetaSnapshot] = {}
+        self._rgb_losses: list[float] = []
+        self._warned_flat = False
         self._round_compute_s: float | None = None  # our last round's training time: may we train through a gap?
 
     def _model_changed(self) -> None:
@@ -326,7 +331,7 @@ class Daemon:
             time.sleep(0.1)
         missing = sorted(everyone - set(self.membership.alive))
         if missing:
-            self.report.say(f"starting without {missing} (not seen within {self.cfg.startup_wait_s:.0f} s)")
+            self.report.warn(f"starting without {missing} (not seen within {self.cfg.startup_wait_s:.0f} s)")
 
     def run(self) -> int:
         """Returns the number of rounds completed by this process."""
@@ -395,8 +400,22 @@ class Daemon:
         self.board.set(phase="round_done", loss=stats.loss, psnr=record.psnr, heard=record.heard,
                        bytes_in_total=net["bytes_in_total"], bytes_out_total=net["bytes_out_total"],
                        seconds_compute=t_compute, seconds_wait=waited, pose7=self._pose()["params7"])
-        self.report.say(record.log_line(self.training.rounds))
+        (self.report.warn if record.alignment == "unaligned" else self.report.say)(record.log_line(self.training.rounds))
+        self._warn_if_flat(stats.rgb_loss)
         return 1
+
+    def _warn_if_flat(self, rgb_loss: float) -> None:
+        """Say it once when the photometric loss stops moving while still high (agent.telemetry.PlateauRule)."""
+        self._rgb_losses.append(rgb_loss)
+        if self._warned_flat or not self.cfg.plateau.is_flat(self._rgb_losses):
+            return
+        self._warned_flat = True
+        last = self._rgb_losses[-self.cfg.plateau.window:]
+        mean = sum(last) / len(last)
+        self.report.event("loss_flat", rgb_loss=mean, rounds=len(last))
+        self.report.warn(f"the training loss has been flat at {mean:.4f} ({-10 * math.log10(mean):.1f} dB) for "
+                         f"{len(last)} rounds: the field may not model what the cameras see (an RGB capture needs "
+                         "an unbounded field: training.train.field.unbounded; see `dinerf-agent inspect` warnings)")
 
     def _pose(self) -> dict:
         with torch.no_grad():

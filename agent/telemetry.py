@@ -92,6 +92,27 @@ class RoundRecord:
         )
 
 
+@dataclass(frozen=True)
+class PlateauRule:
+    """A loss that stops moving while still high, or without having fallen from where it started,
+    means a field that cannot model what the cameras see (a bounded box around an RGB capture's
+    room, a wrong frame), not convergence."""
+
+    window: int = 4  # rounds
+    rel_change: float = 0.03  # max spread of those rounds' losses, relative to their mean
+    above_loss: float = 0.02  # photometric MSE; 0.02 is ~17 dB on the robot's own rays
+    stalled_fraction: float = 0.7  # ... or still above this fraction of the first round's loss
+
+    def is_flat(self, losses: list[float]) -> bool:
+        last = losses[-self.window:]
+        if len(last) < self.window or len(losses) < 2:
+            return False
+        mean = sum(last) / len(last)
+        if max(last) - min(last) > self.rel_change * mean:
+            return False
+        return min(last) > self.above_loss or mean > self.stalled_fraction * losses[0]
+
+
 class JsonLines:
     """An append-only JSON-lines file written from several threads, flushed line by line."""
 
@@ -125,14 +146,19 @@ class Reporter:
     """A robot's voice: its log lines, its events and its count of refused messages, thread-safe."""
 
     def __init__(self, robot_id: int, log: Callable[[str], None], events: EventLog,
-                 round_of: Callable[[], int]) -> None:
+                 round_of: Callable[[], int], warn: Callable[[str], None] | None = None) -> None:
         self.robot_id = robot_id
         self._log, self._events, self._round_of = log, events, round_of
+        self._warn = warn or log
         self._lock = threading.Lock()
         self.rejected: Counter[str] = Counter()
 
     def say(self, text: str) -> None:
         self._log(f"[robot {self.robot_id}] {text}")
+
+    def warn(self, text: str) -> None:
+        """Something an operator should act on or know (refused messages, a robot out of consensus)."""
+        self._warn(f"[robot {self.robot_id}] {text}")
 
     def event(self, kind: str, **fields: Any) -> None:
         self._events.write(kind, self._round_of(), **fields)
@@ -143,7 +169,7 @@ class Reporter:
             self.rejected[reason] += 1
             count = self.rejected[reason]
         if count <= 3 or count % 100 == 0:
-            self.say(f"rejected a message ({reason}, #{count}): {detail[:200]}")
+            self.warn(f"rejected a message ({reason}, #{count}): {detail[:200]}")
 
     def rejected_counts(self) -> dict[str, int]:
         with self._lock:

@@ -136,7 +136,10 @@ def inspect(
     from agent.data.capture import capture_warnings, estimate_scene_box, mean_up, scene_center
     from agent.data.loaders import load_views
 
-    v = load_views(data, width=width, undistort=undistort)
+    from cli.options import progress_listener
+
+    with progress_listener():
+        v = load_views(data, width=width, undistort=undistort)
     console = Console()
     table = Table(title=str(data), show_header=False)
     table.add_column("what", style="bold")

@@ -9,6 +9,7 @@ import typer
 
 from cli.errors import UserError, friendly_errors
 from cli.main import app
+from cli.options import progress_listener
 
 scenario_app = typer.Typer(help="Named swarm experiments: run (loopback or network namespaces), report, compose.",
                            no_args_is_help=True)
@@ -97,7 +98,8 @@ def run_cmd(
         raise UserError(f"network set-up failed: {e}") from None
     typer.echo(f"[scenario] {'completed' if outcome.ok else 'FAILED'}: {outcome.reason} ({outcome.seconds:.0f} s)")
     if report and (out / "data" / "truth.json").is_file():
-        build_report(out, spec, echo=typer.echo)
+        with progress_listener():
+            build_report(out, spec, echo=typer.echo)
     if not outcome.ok:
         raise typer.Exit(1)
 
@@ -110,7 +112,8 @@ def report_cmd(out: Path = typer.Argument(..., help="The output folder of a `sce
 
     if not (out / "run.json").is_file():
         raise UserError(f"{out}: no run.json (not the output folder of `dinerf-agent scenario run`)")
-    build_report(out, echo=typer.echo)
+    with progress_listener():
+        build_report(out, echo=typer.echo)
 
 
 @scenario_app.command("compare")

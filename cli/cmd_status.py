@@ -41,6 +41,23 @@ def status_table(latest: dict, now: float, swarm_name: str) -> Table:
     return table
 
 
+def status_json(latest: dict, now: float, swarm_name: str) -> str:
+    """The same rows as :func:`status_table`, as JSON for scripts (pose: log-scale, rotation vector, t)."""
+    import json
+
+    robots = []
+    for rid in sorted(latest):
+        msg, seen = latest[rid]
+        robots.append({
+            "robot": rid, "round": msg.round, "phase": msg.phase, "loss": msg.loss, "psnr": msg.psnr,
+            "pose": list(msg.pose), "alignment": msg.alignment.value, "alignment_detail": msg.alignment_detail,
+            "heard": list(msg.neighbours_heard), "bytes_in": msg.bytes_in, "bytes_out": msg.bytes_out,
+            "rejected": dict(msg.rejected), "reference": msg.reference, "alive": sorted(msg.alive_ages),
+            "seen_s_ago": round(now - seen, 3),
+        })
+    return json.dumps({"swarm": swarm_name, "robots": robots}, indent=2)
+
+
 def _frame_state(msg) -> str:
     """How the robot's frame is placed; an unaligned robot is out of consensus, and says so."""
     state = msg.alignment.value
@@ -55,6 +72,7 @@ def status(
     swarm: Path = typer.Option(..., "--swarm", help="The swarm TOML (its endpoints tell where to connect)."),
     connect: list[str] = typer.Option([], "--connect", help="Extra Zenoh endpoint to connect to (repeatable)."),
     once: float = typer.Option(0.0, help="Print one table after this many seconds and exit (0 = live view)."),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON once (after --once seconds, default 3) and exit."),
 ) -> None:
     """Show every robot's round, loss, PSNR, pose, traffic and rejections, live."""
     from cli.swarm_file import load_swarm_file
@@ -89,10 +107,14 @@ def status(
     console = Console()
     try:
         net.subscribe(keys.status_all(), on_status)
-        if once > 0:
-            time.sleep(once)
+        if once > 0 or as_json:
+            time.sleep(once if once > 0 else 3.0)
             with lock:
-                console.print(status_table(dict(latest), time.monotonic(), cfg.swarm.name))
+                snapshot = dict(latest)
+            if as_json:
+                print(status_json(snapshot, time.monotonic(), cfg.swarm.name), flush=True)
+            else:
+                console.print(status_table(snapshot, time.monotonic(), cfg.swarm.name))
             return
         with Live(console=console, refresh_per_second=2) as live:
             while True:

@@ -9,11 +9,11 @@ from pathlib import Path
 import typer
 
 from cli.errors import UserError, friendly_errors
+from cli.logs import LOGGER
 from cli.main import app
 
-
-def _log(line: str) -> None:
-    print(line, flush=True)
+_log = LOGGER.info
+_EXIT_ON = {signal.SIGINT: 130, signal.SIGTERM: 143}  # 128 + the signal, as shells report it
 
 
 @app.command()
@@ -36,7 +36,7 @@ def up(
     from protocol.keys import Keys
     from protocol.transport import TransportError, ZenohTransport
 
-    from cli.options import check_output_folder
+    from cli.options import check_output_folder, progress_listener
 
     if not data.is_dir():
         what = "not a folder" if data.exists() else "no such folder"
@@ -54,11 +54,12 @@ def up(
         raise UserError(f"{base_dir / cfg.swarm.scene} has no field box (robots with images only): set "
                         "daemon.initial_pose = 'coarse' so that the reference shares the box of its SfM frame")
     # a folder of images only: SfM on the full-size images (cached), then downscaled to the training width
-    views = load_views(data, width=cfg.training.image_width, sfm_cache_dir=run_dir / SFM_CACHE, sfm=cfg.sfm)
-    summary_views = None  # the keyframe summary's features come from the sharper images when there are any
-    if cfg.daemon.initial_pose == "coarse" and cfg.daemon.summary_width != cfg.training.image_width:
-        full = load_views(data, width=cfg.daemon.summary_width, sfm_cache_dir=run_dir / SFM_CACHE, sfm=cfg.sfm)
-        summary_views = full if full.width != views.width else None
+    with progress_listener():
+        views = load_views(data, width=cfg.training.image_width, sfm_cache_dir=run_dir / SFM_CACHE, sfm=cfg.sfm)
+        summary_views = None  # the keyframe summary's features come from the sharper images when there are any
+        if cfg.daemon.initial_pose == "coarse" and cfg.daemon.summary_width != cfg.training.image_width:
+            full = load_views(data, width=cfg.daemon.summary_width, sfm_cache_dir=run_dir / SFM_CACHE, sfm=cfg.sfm)
+            summary_views = full if full.width != views.width else None
     transport_cfg = cfg.transport_for(robot_id, listen, connect)
 
     try:
@@ -66,11 +67,18 @@ def up(
     except TransportError as e:
         raise UserError(f"cannot open the Zenoh session: {e}") from None
     daemon = None
+    stopped_by: list[int] = []
+
+    def stop(signum: int, _frame) -> None:
+        stopped_by.append(signum)
+        daemon.stop()
+
     try:
         daemon = Daemon(robot_id, views, scene.box_from_shared, cfg.identity(), cfg.training, cfg.daemon,
-                        transport, run_dir, log=_log, summary_views=summary_views, align=cfg.align)
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(sig, lambda *_: daemon.stop())
+                        transport, run_dir, log=_log, summary_views=summary_views, align=cfg.align,
+                        warn=LOGGER.warning)
+        for sig in _EXIT_ON:
+            signal.signal(sig, stop)
         _log(f"[robot {robot_id}] up: swarm '{cfg.swarm.name}' ({cfg.topology.kind}: "
              f"neighbours {sorted(cfg.graph().neighbours(robot_id))}), {len(views)} views, "
              f"listen {transport_cfg.listen}, connect {transport_cfg.connect}, run dir {run_dir}")
@@ -80,3 +88,7 @@ def up(
     finally:
         transport.close()
     sys.stdout.flush()
+    if stopped_by:
+        _log(f"[robot {robot_id}] stopped by {signal.Signals(stopped_by[0]).name}: the checkpoint of the last "
+             f"completed round is kept in {run_dir}")
+        raise typer.Exit(_EXIT_ON[stopped_by[0]])

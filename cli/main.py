@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+from importlib import metadata
 
 import typer
 
@@ -21,7 +22,35 @@ COMMAND_MODULES = [
     "cli.cmd_up",
     "cli.cmd_status",
     "cli.cmd_scenario",
+    "cli.cmd_config",
+    "cli.cmd_health",
 ]
+
+
+def _version(value: bool) -> None:
+    if value:
+        try:
+            version = metadata.version("dinerf")
+        except metadata.PackageNotFoundError:
+            version = "unknown (not installed)"
+        typer.echo(f"dinerf-agent {version}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _global_options(
+    verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="More log lines (repeatable; debug)."),
+    quiet: int = typer.Option(0, "--quiet", "-q", count=True, help="Fewer log lines (warnings only, then errors)."),
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version."),
+) -> None:
+    """Peer-to-peer multi-robot NeRF (Di-NeRF) over Zenoh. Log level also from DINERF_LOG=debug|info|warning|error."""
+    from cli.logs import configure
+
+    try:
+        configure(verbose, quiet)
+    except ValueError as e:
+        typer.secho(f"error: {e}", err=True, fg=typer.colors.RED)
+        raise typer.Exit(2) from None
 
 
 def _register() -> None:

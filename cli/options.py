@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from pathlib import Path
+from typing import Iterator
 
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
@@ -50,3 +52,40 @@ def progress_bar() -> Progress:
         TimeRemainingColumn(),
         transient=False,
     )
+
+
+class _RichListener:
+    """agent.progress's listener drawn as rich bars (a spinner-like bar for steps of unknown length)."""
+
+    def __init__(self, progress: Progress) -> None:
+        self.progress = progress
+
+    def begin(self, description: str, total: int | None) -> object:
+        return self.progress.add_task(description, total=total)
+
+    def advance(self, task: object) -> None:
+        self.progress.advance(task)
+
+    def end(self, task: object) -> None:
+        t = self.progress.tasks[[x.id for x in self.progress.tasks].index(task)]
+        self.progress.update(task, total=t.completed if t.total is None else t.total,
+                             completed=t.completed if t.total is None else t.total)
+
+
+@contextlib.contextmanager
+def progress_listener(enabled: bool | None = None) -> Iterator[None]:
+    """Bars on stderr for the long local work inside the block (image loading, SfM, evaluation);
+    by default only on a terminal (a log file gets no bars)."""
+    import sys
+
+    from rich.console import Console
+
+    from agent.progress import listening
+
+    if not (sys.stderr.isatty() if enabled is None else enabled):
+        yield
+        return
+    with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                  TimeElapsedColumn(), console=Console(stderr=True), transient=True) as progress:
+        with listening(_RichListener(progress)):
+            yield

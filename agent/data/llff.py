@@ -20,6 +20,7 @@ from agent.data.frames import load_pixels
 from agent.data.images import list_image_files, read_raw, stack_images
 from agent.data.masks import find_masks, masks_meta
 from agent.data.views import DataError, Views
+from agent.progress import track
 
 __all__ = ["POSES_BOUNDS", "load_llff", "choose_image_dir"]
 
@@ -42,7 +43,7 @@ def load_llff(folder: str | Path, *, width: int | None = None) -> Views:
                         "(one per image, in sorted file-name order)")
     masks = find_masks(files, where=f"{folder}: ")
     pixels = []
-    for i, f in enumerate(files):
+    for i, f in enumerate(track(files, f"loading {img_dir.name}")):
         h_orig, w_orig, focal = hwf[i]
 
         def at(w0: int, h0: int, focal=focal, w_orig=w_orig, h_orig=h_orig) -> tuple[float, float, float, float]:

@@ -35,11 +35,12 @@ import torch
 from agent.camera import w2c_opencv_to_c2w_opengl
 from agent.data.images import read_image, resize_image
 from agent.data.views import DataError, Views
+from agent.progress import stage, track
 
 __all__ = ["SfmConfig", "run_sfm", "list_images", "read_image", "read_camera_file", "write_camera_file",
            "CAMERA_FILE", "IMAGE_SUFFIXES"]
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("dinerf.sfm")
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 _CACHE_FORMAT = 1  # bump when the layout of result.npz changes
@@ -192,13 +193,16 @@ def _reconstruct(files: list[Path], work: Path, config: SfmConfig) -> dict:
     db = work / "database.db"
     if db.exists():
         db.unlink()
-    _extract_features(db, img_dir, names, size, (sfm_w, sfm_h), config)
-    matcher = _match_features(db, len(names), config)
+    with stage(f"SfM: features of {len(names)} images"):
+        _extract_features(db, img_dir, names, size, (sfm_w, sfm_h), config)
+    with stage("SfM: matching"):
+        matcher = _match_features(db, len(names), config)
     sparse = work / "sparse"
     if sparse.exists():
         shutil.rmtree(sparse)
     sparse.mkdir()
-    models = pycolmap.incremental_mapping(db, img_dir, sparse, options=_mapping_options(config))
+    with stage("SfM: incremental mapping"):
+        models = pycolmap.incremental_mapping(db, img_dir, sparse, options=_mapping_options(config))
     if not models:
         return {"names": names, "registered": [], "size": (sfm_w, sfm_h), "matcher": matcher}
     best = max(models, key=lambda k: (models[k].num_reg_images(), -k))
@@ -224,7 +228,7 @@ def _write_sfm_images(files: list[Path], img_dir: Path, config: SfmConfig) -> tu
     img_dir.mkdir(parents=True)
     names: list[str] = []
     size = None
-    for f in files:
+    for f in track(files, "SfM: preparing images"):
         img = read_image(f)
         if size is None:
             size = (img.shape[1], img.shape[0])

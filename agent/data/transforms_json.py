@@ -22,6 +22,7 @@ from agent.data.lens import Lens, transforms_lens
 from agent.data.masks import check_mask_paths, find_masks, masks_meta
 from agent.data.views import EXPECTED_LAYOUTS, DataError, Views
 from agent.files import read_json
+from agent.progress import track
 
 __all__ = ["load_transforms"]
 
@@ -57,7 +58,7 @@ def load_transforms(json_path: str | Path, *, width: int | None = None, load_dep
     factor = _num(top, "depth_unit_scale_factor", str(json_path))
     loaded: list[_Frame] = []
     depths: list[np.ndarray | None] = []
-    for i, frame in enumerate(frames):
+    for i, frame in enumerate(track(frames, f"loading {json_path.parent.name or json_path.name}")):
         f = _read_frame(top, frame, i, json_path, paths[i], masks[i] if masks else None, width, undistort, notes)
         if loaded and loaded[0].size != f.size:
             raise DataError(

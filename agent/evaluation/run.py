@@ -23,6 +23,7 @@ from agent.data.split import robot_folder
 from agent.data.views import DataError
 from agent.evaluation.evalset import EvalSet
 from agent.evaluation.scores import ImageScores, RobotEval, evaluate_robot
+from agent.progress import track
 from agent.trainer import RobotTrainer
 
 __all__ = ["SwarmRun", "ScoringOptions", "RoundScores", "RunScores", "score_run", "calibrate_frames"]
@@ -126,7 +127,7 @@ def score_run(run: SwarmRun, opts: ScoringOptions, echo: Echo = silent) -> RunSc
     chosen = rounds_to_score(snaps, opts.every)
     echo(f"evaluating {len(chosen)} rounds x {len(run.ids)} robots on {len(evalset.views)} held-out views")
     scores = RunScores(evalset, {i: {} for i in run.ids}, {}, notes)
-    for k in chosen:
+    for k in track(chosen, f"evaluating {len(run.ids)} robots"):
         thetas = {}
         for i in run.ids:
             if k not in snaps[i] or i not in evaluable:

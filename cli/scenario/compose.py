@@ -63,6 +63,7 @@ def compose_document(spec: ScenarioSpec, compose_dir: Path) -> dict[str, Any]:
         services[f"robot{i}"] = {
             "build": {"context": context, "dockerfile": "Dockerfile"},
             "image": IMAGE,
+            "user": "${DINERF_UID:-1000}:${DINERF_GID:-1000}",  # the run dirs' owner on the host
             "command": cmd,
             "environment": {"PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": str(spec.daemon.threads)},
             "volumes": [
@@ -89,12 +90,14 @@ def write_compose(spec: ScenarioSpec, path: Path, with_data: bool = False) -> Pa
     doc = compose_document(spec, folder)
     header = (f"# written by `dinerf-agent scenario compose {spec.name}`: one service per robot, one network per link.\n"
               f"# Robot folders: `dinerf-agent scenario compose {spec.name} --data` writes them into ./data;\n"
-              f"# then `docker compose up --build` (run dirs appear in ./runs).\n")
+              f"# then `DINERF_UID=$(id -u) DINERF_GID=$(id -g) docker compose up --build` (run dirs appear in ./runs).\n")
     path.write_text(header + dump_yaml(doc))
     swarm = swarm_document(spec, "scene.json", None, spec.name)
     (folder / "swarm.toml").write_text(f"# swarm file of scenario {spec.name!r} for docker compose\n" + toml_dumps(swarm))
     if with_data:
         prepare_split(spec, folder / "data")
+        for i in spec.ids:  # created here, not by Docker (which would make them root's: the robot is not root)
+            (folder / "runs" / f"robot{i}").mkdir(parents=True, exist_ok=True)
     return path
 
 

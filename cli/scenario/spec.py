@@ -90,7 +90,10 @@ def repo_root() -> Path:
 
 
 def scenarios_dir() -> Path:
-    return repo_root() / "scenarios"
+    """The named scenarios: package data of ``scenarios`` (a checkout's folder, or the installed copy)."""
+    import scenarios
+
+    return Path(scenarios.__file__).resolve().parent
 
 
 @dataclass

@@ -36,17 +36,17 @@ def _value(v: Any) -> str:
     raise TypeError(f"cannot write {type(v).__name__} to TOML: {v!r}")
 
 
-def dumps(data: dict[str, Any]) -> str:
-    """Nested dict -> TOML text (sub-dicts become [tables])."""
+def dumps(data: dict[str, Any], show_unset: bool = False) -> str:
+    """Nested dict -> TOML text (sub-dicts become [tables]); ``show_unset``: a None is a comment line."""
     lines: list[str] = []
 
     def table(d: dict[str, Any], path: list[str]) -> None:
-        scalars = [(k, v) for k, v in d.items() if v is not None and not isinstance(v, dict)]
+        scalars = [(k, v) for k, v in d.items() if (v is not None or show_unset) and not isinstance(v, dict)]
         subs = [(k, v) for k, v in d.items() if isinstance(v, dict)]
         if path and (scalars or not subs):
             lines.append(f"[{'.'.join(_key(p) for p in path)}]")
         for k, v in scalars:
-            lines.append(f"{_key(k)} = {_value(v)}")
+            lines.append(f"# {_key(k)} unset (decided at run time)" if v is None else f"{_key(k)} = {_value(v)}")
         if scalars or (path and not subs):
             lines.append("")
         for k, v in subs:

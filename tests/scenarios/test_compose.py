@@ -152,6 +152,34 @@ def test_dockerfile_uses_the_cpu_wheel():
     assert "FROM python:3.11-slim" in text
     assert "torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu" in text
     assert 'ENTRYPOINT ["dinerf-agent"]' in text
+    assert "\nUSER dinerf\n" in text and "COPY scenarios ./scenarios" in text
+    assert 'HEALTHCHECK' in text and '"health", "/run/robot"' in text
+
+
+def test_the_healthcheck_tells_a_progressing_robot_from_a_stuck_one(tmp_path):
+    import time
+
+    from agent.checkpoint import RunFolder
+    from cli.cmd_health import run_dir_health
+
+    run = tmp_path / "run"
+    assert not run_dir_health(run, 60)[0]
+    folder = RunFolder(run)
+    assert run_dir_health(run, 60) == (False, f"{run}: nothing written yet")
+    folder.telemetry.write_text("{}\n")
+    assert run_dir_health(run, 60)[0]
+    ok, why = run_dir_health(run, 60, now=time.time() + 120)
+    assert not ok and "no round, event or checkpoint for 120 s" in why
+    folder.write_done(1, 3, {})
+    assert run_dir_health(run, 60, now=time.time() + 1e6) == (True, f"{run}: done")
+
+
+def test_compose_runs_robots_as_the_host_user_with_run_dirs_made_in_advance(tmp_path):
+    spec = _spec(tmp_path)
+    path = write_compose(spec, tmp_path / "out" / "docker-compose.yml", with_data=True)
+    doc = compose_document(spec, path.parent)
+    assert all(svc["user"] == "${DINERF_UID:-1000}:${DINERF_GID:-1000}" for svc in doc["services"].values())
+    assert all((path.parent / f"runs/robot{i}").is_dir() for i in spec.ids)
 
 
 def test_shipped_compose_files_are_current():

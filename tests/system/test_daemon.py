@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -199,9 +200,17 @@ def test_reference_failover_keeps_the_frame_and_a_restarted_robot_resumes(tmp_pa
     assert resigned, "robot 2 should hand the reference back to robot 1"
 
 
+def _stop_by_signals(swarm, signals: dict) -> dict[int, int]:
+    for i, sig in signals.items():
+        swarm.procs[i].send_signal(sig)
+    return {i: swarm.procs[i].wait(timeout=60) for i in signals}
+
+
 def test_status_command_shows_every_robot_live(tmp_path):
-    import os
+    """... and a robot stopped by SIGINT / SIGTERM exits 130 / 143, keeping its last round's checkpoint."""
     import re
+
+    from agent.checkpoint import RunFolder
 
     swarm = make_swarm(tmp_path, robots=2, topology="full", training={"rounds": 30})
     try:
@@ -209,9 +218,21 @@ def test_status_command_shows_every_robot_live(tmp_path):
         swarm.wait_round(1, 1)
         out = subprocess.run([sys.executable, "-m", "cli", "status", "--swarm", str(swarm.swarm_file), "--once", "3"],
                              cwd=REPO, capture_output=True, text=True, timeout=60, env=dict(os.environ, COLUMNS="200"))
+        as_json = subprocess.run([sys.executable, "-m", "cli", "status", "--swarm", str(swarm.swarm_file), "--json",
+                                  "--once", "2"], cwd=REPO, capture_output=True, text=True, timeout=60)
+        codes = _stop_by_signals(swarm, {1: signal.SIGINT, 2: signal.SIGTERM})
     finally:
         swarm.stop()
+    assert codes == {1: 130, 2: 143}, codes
+    for i, name in ((1, "SIGINT"), (2, "SIGTERM")):
+        kept = RunFolder(swarm.run_dir(i), create=False).load()
+        assert kept is not None and kept.round == swarm.telemetry(i)[-1].round, "the last round's checkpoint is kept"
+        assert re.search(rf"^\d{{4}}-\d\d-\d\d \d\d:\d\d:\d\d\.\d{{3}} INFO +\[robot {i}\] stopped by {name}",
+                         swarm.log_text(i), re.M), swarm.log_text(i)
     assert out.returncode == 0, out.stderr
+    assert as_json.returncode == 0, as_json.stderr
+    robots = json.loads(as_json.stdout)["robots"]
+    assert [r["robot"] for r in robots] == [1, 2] and all(r["round"] >= 1 and r["alignment"] for r in robots), robots
     print(out.stdout)
     assert "2 robot(s) heard" in out.stdout
     rows = {int(m[1]): int(m[2]) for m in re.finditer(r"^│\s+(\d+)\s+│\s+(\d+)\s+│", out.stdout, re.M)}

@@ -90,9 +90,10 @@ def test_up_refuses_a_bad_checkpoint_in_one_line_and_keeps_it(swarm, tmp_path, c
     res = subprocess.run(AGENT + ["up", "--id", "1", "--data", str(swarm.root / "robot1"), "--run-dir", str(run)],
                          cwd=REPO, capture_output=True, text=True, timeout=120,
                          env=dict(os.environ, OMP_NUM_THREADS="1", COLUMNS="200"))
-    lines = res.stderr.strip().splitlines()
+    lines = res.stderr.strip().splitlines()  # the log lines (timestamped) before it, then the error
     assert res.returncode == 2, res.stdout[-2000:] + res.stderr[-2000:]
-    assert len(lines) == 1 and lines[0].startswith("error:") and why in lines[0], res.stderr
+    errors = [line for line in lines if line.startswith("error:")]
+    assert errors == lines[-1:] and why in errors[0], res.stderr
     assert "Traceback" not in res.stdout + res.stderr
     assert not (run / "pwned").exists(), "the checkpoint's code ran"
     after = _snapshot(run)

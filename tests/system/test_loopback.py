@@ -33,7 +33,7 @@ def test_key_expressions_match_as_in_zenoh():
     assert key_matches("dinerf/s/**", "dinerf/s/theta/1/17/2") and key_matches("dinerf/**", "dinerf")
 
 
-def run_in_process(swarm, training_cfg, daemon_cfg, links=None) -> dict[int, Daemon]:
+def run_in_process(swarm, training_cfg, daemon_cfg, links=None, warn=None) -> dict[int, Daemon]:
     """Every robot of ``swarm`` as a Daemon thread on one LoopbackHub; returns them when all are done."""
     from cli.swarm_file import load_swarm_file
 
@@ -47,7 +47,7 @@ def run_in_process(swarm, training_cfg, daemon_cfg, links=None) -> dict[int, Dae
         nets.append(net)
         daemons[i] = Daemon(i, load_views(swarm.root / f"robot{i}"), scene.box_from_shared,
                             SwarmIdentity(cfg.swarm.name, topo), training_cfg or cfg.training,
-                            daemon_cfg or cfg.daemon, net, swarm.run_dir(i), log=lambda line: None)
+                            daemon_cfg or cfg.daemon, net, swarm.run_dir(i), log=lambda line: None, warn=warn)
 
     def run(d: Daemon) -> None:
         try:
@@ -81,3 +81,22 @@ def test_a_line_of_three_in_one_process_matches_the_simulation(tmp_path):
         assert [r.round for r in records] == [1, 2, 3, 4, 5]
         line = {1: [2], 2: [1, 3], 3: [2]}[i]
         assert all(r.heard == line and r.bytes_in for r in records), records
+
+
+def test_a_loss_that_stays_flat_and_high_is_said_once(tmp_path):
+    """A field that learns nothing (learning rate ~0 here; a bounded box around a room in real life)
+    used to go flat silently; the daemon warns once, with an event."""
+    from agent.telemetry import read_events
+
+    torch.set_num_threads(1)
+    swarm = make_swarm(tmp_path, robots=2, topology="full",
+                       training={"rounds": 6, "steps_per_round": 2, "train": {"optim": {"lr": 1e-12}}})
+    warnings: list[str] = []
+    cfg = from_dict(DaemonConfig, {"startup_wait_s": 5.0, "round_timeout_s": 30.0, "initial_pose": "identity",
+                                   "linger_s": 0.2, "threads": 1, "plateau": {"window": 3, "rel_change": 0.5}})
+    run_in_process(swarm, None, cfg, warn=warnings.append)
+    for i in swarm.robots:
+        flat = [e for e in read_events(RunFolder(swarm.run_dir(i)).events) if e["event"] == "loss_flat"]
+        assert len(flat) == 1 and flat[0]["round"] == 3 and flat[0]["rgb_loss"] > 0.02, flat
+    said = [w for w in warnings if "the training loss has been flat" in w]
+    assert sorted(w.split("]")[0] for w in said) == ["[robot 1", "[robot 2"], warnings
