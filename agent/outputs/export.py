@@ -13,7 +13,7 @@ Geometry comes from the density sampled at the centres of a ``resolution^3`` lat
 box (over the box only, also for unbounded fields: the contracted shell is not geometry). The
 point cloud keeps the lattice points whose density is above ``density_threshold`` (per box unit
 of length, the renderer's unit); the mesh is the iso-surface at that density (PyMCubes). Points
-and vertices are coloured by the field's radiance averaged over the six axis directions.
+and vertices are coloured by the field's radiance towards the robot's nearest camera.
 """
 
 from __future__ import annotations
@@ -89,14 +89,20 @@ def sample_density(trainer: RobotTrainer, points_box: Tensor, chunk: int = 65536
 
 @torch.no_grad()
 def field_colours(trainer: RobotTrainer, points_box: Tensor, chunk: int = 65536) -> Tensor:
-    """The field's radiance at points, averaged over the six axis directions.  [N, 3] -> [N, 3] in [0, 1]."""
-    field, lw = trainer.field, trainer.level_weights()
-    dirs = torch.cat([torch.eye(3), -torch.eye(3)]).to(trainer.device)  # [6, 3]
+    """The field's radiance at points, seen from the nearest of the robot's cameras.  [N, 3] -> [N, 3] in [0, 1].
+
+    View-dependent colour is only learnt for directions some camera looked along; from elsewhere
+    (below the floor, say) it is whatever the MLP extrapolates, so each point takes the direction
+    from which the closest camera saw it."""
+    field, lw, dev = trainer.field, trainer.level_weights(), trainer.device
+    eyes = transform_points(trainer.box_from_shared, trainer.cameras_shared().detach()[:, :3, 3])  # [M, 3] box
     out = []
     for p in points_box.split(chunk):
-        _, geo = field.density(field.to_grid(p.to(trainer.device)), lw)  # [n, G]
-        rgb = [field.color(geo, d.expand(len(p), 3)) for d in dirs]
-        out.append(torch.stack(rgb).mean(0).cpu())
+        p = p.to(dev)
+        near = eyes[torch.cdist(p, eyes).argmin(dim=1)]  # [n, 3]
+        dirs = torch.nn.functional.normalize(p - near, dim=-1)
+        _, geo = field.density(field.to_grid(p), lw)  # [n, G]
+        out.append(field.color(geo, dirs).cpu())
     return torch.cat(out) if out else torch.zeros(0, 3)
 
 

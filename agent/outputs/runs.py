@@ -1,11 +1,13 @@
 """Which robots a run folder holds, where their views are, and whether it has held-out views.
 
-Two kinds of run folder are understood:
+Three kinds of run folder are understood:
 
 - a scenario run (``dinerf-agent scenario run``): ``robots/<id>/`` and the split in ``data/``;
 - one robot's ``--run-dir`` of ``dinerf-agent up``: its ``checkpoint.safetensors`` and, since
   ``data.json`` exists, the data folder it was given. Older run folders have no record: the
-  caller passes the data folder (``--data``).
+  caller passes the data folder (``--data``);
+- the folder of a swarm run by hand, ``runs/<swarm>/`` with ``robot<id>/`` run dirs (``up``'s
+  default), each with its ``data.json``.
 
 A split written by ``dinerf-agent split`` has the held-out views beside the robot folders
 (``eval/`` and ``truth.json``): that is what ``eval`` scores against.
@@ -29,7 +31,7 @@ class OutputRun:
     """The robots of a run folder: run dir and data folder of each, and the split they came from."""
 
     path: Path
-    kind: str  # "scenario" or "robot"
+    kind: str  # "scenario", "robot" or "swarm" (robot<id>/ run dirs of a swarm run by hand)
     run_dirs: dict[int, Path]  # robot id -> its run folder
     data_dirs: dict[int, Path]  # robot id -> the folder its views were loaded from
     split_dir: Path | None  # eval/ + truth.json, when the robots' data came from a split
@@ -74,6 +76,23 @@ def _robot_ids(robots: Path) -> dict[int, Path]:
     return {i: p for i, p in found.items() if (p / CHECKPOINT).exists()}
 
 
+def _hand_run(path: Path) -> OutputRun | None:
+    """``path/robot<id>/`` run dirs of ``up`` (with their data records), or None when there are none."""
+    found = {int(p.name[5:]): p for p in path.glob("robot*")
+             if p.name[5:].isdigit() and (p / CHECKPOINT).exists()}
+    if not found:
+        return None
+    data_dirs = {}
+    for i, run_dir in found.items():
+        recorded = RunFolder(run_dir, create=False).recorded_data_dir()
+        if recorded is None:
+            raise DataError(f"{run_dir}: the run folder does not record its data folder (an older dinerf): "
+                            "give that robot's run dir and its --data instead")
+        data_dirs[i] = recorded
+    splits = {_split_of(d) for d in data_dirs.values()}
+    return OutputRun(path, "swarm", found, data_dirs, splits.pop() if len(splits) == 1 else None)
+
+
 def open_run(path: str | Path, data: str | Path | None = None) -> OutputRun:
     """The run folder at ``path`` (see the module docstring); ``data``: a robot run's data folder, if unrecorded."""
     path = Path(path)
@@ -89,9 +108,14 @@ def open_run(path: str | Path, data: str | Path | None = None) -> OutputRun:
         return OutputRun(path, "scenario", run_dirs, data_dirs, split if _is_split(split) else None)
     folder = RunFolder(path, create=False)
     ck = folder.load()  # CheckpointError for a damaged or foreign file
+    if ck is None and data is None:
+        hand = _hand_run(path)
+        if hand is not None:
+            return hand
     if ck is None:
         legacy = " (an older dinerf's checkpoint.pt is not loaded)" if (path / LEGACY_CHECKPOINT).exists() else ""
-        raise DataError(f"{path}: not a run folder: no {CHECKPOINT} and no robots/ + data/ of a scenario run{legacy}")
+        raise DataError(f"{path}: not a run folder: no {CHECKPOINT}, no robots/ + data/ of a scenario run "
+                        f"and no robot<id>/ run dirs{legacy}")
     data_dir = Path(data) if data is not None else folder.recorded_data_dir()
     if data_dir is None:
         raise DataError(f"{path}: the run folder does not record its data folder (an older dinerf): pass --data")

@@ -154,6 +154,13 @@ def test_eval_matches_agent_evaluation(run, tmp_path):
     r2 = json.loads((tmp_path / "r2.json").read_text())
     assert set(r2["robots"]) == {"1"} and r2["round"] == 2 and "view_000" in one
     assert r2["robots"]["1"]["psnr"] == pytest.approx(evaluate_robot(opened.load(1, round=2), evalset, 1).psnr_all)
+    # a swarm run by hand: runs/<swarm>/robot<id>/, as `up` lays them out by default
+    hand = tmp_path / "swarm1"
+    for i in (1, 2):
+        shutil.copytree(run / "robots" / str(i), hand / f"robot{i}")
+    ok_here("eval", str(hand), "--no-ssim", "--json", str(tmp_path / "hand.json"))
+    by_hand = json.loads((tmp_path / "hand.json").read_text())
+    assert {i: r["psnr"] for i, r in by_hand["robots"].items()} == {i: r["psnr"] for i, r in doc["robots"].items()}
 
 
 def _density_numpy(cfg: dict, t: dict[str, np.ndarray], x_shared: np.ndarray) -> np.ndarray:
