@@ -40,7 +40,7 @@ def render(
     run_dir: Path = typer.Argument(..., help=RUN_HELP),
     out: Path = typer.Option(None, "--out", help="Output folder (default: <RUN_DIR>/renders)."),
     robot: int = typer.Option(None, "--robot", help=ROBOT_HELP),
-    cameras: Path = typer.Option(None, "--cameras", help="Render these views: a transforms.json (or a dataset folder)."),
+    cameras: Path = typer.Option(None, "--cameras", help="Render these views: a transforms.json or any dataset folder (its images must be there)."),
     frame: str = typer.Option("shared", "--frame", help="--cameras are in the shared frame, or the robot's local one."),
     orbit: int = typer.Option(None, "--orbit", help="Render N views on an orbit around the field's box (default 60)."),
     spiral: float = typer.Option(0.0, "--spiral", help="Orbit: the elevation swings +- this many degrees per turn."),

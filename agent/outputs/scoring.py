@@ -30,10 +30,12 @@ def score_heldout(run: OutputRun, robots: list[int], round: int | None = None, w
     if evalset.needs_calibration:
         notes = calibrate_frames(evalset, swarm, swarm.snapshot_rounds(), echo)
     doc: dict = {"views": list(evalset.views.names), "notes": notes, "round": round, "robots": {}}
-    for i in robots:
-        if not evalset.has_frame(i):
-            raise DataError(f"robot {i}: its frame is unknown to the truth of {swarm.split_dir} "
-                            f"({'; '.join(notes) or 'not in truth.json'})")
+    scorable = [i for i in robots if evalset.has_frame(i)]
+    if not scorable:
+        raise DataError(f"no robot of {robots} has a frame known to the truth of {swarm.split_dir} "
+                        f"({'; '.join(notes) or 'not in truth.json'})")
+    notes += [f"robot {i}: its frame is unknown to the truth: not scored" for i in robots if i not in scorable]
+    for i in scorable:
         echo(f"robot {i}: rendering {len(evalset.views)} held-out views")
         ev = evaluate_robot(run.load(i, round=round, device=device), evalset, i, with_ssim=with_ssim)
         others = set(ev.others_only)

@@ -261,6 +261,8 @@ def test_bad_input_is_one_line(run, tmp_path):
     assert "not a run folder" in fails("eval", str(tmp_path / "empty"))
     assert "no snapshot of round 99" in fails("render", str(run), "--round", "99", "--orbit", "2")
     assert "no robot 7" in fails("export", str(run), "--out", str(tmp_path / "x"), "--robot", "7")
+    assert "--device" in fails("render", str(run), "--device", "no-such-device", "--orbit", "2")
+    assert "not both" in fails("render", str(run), "--orbit", "2", "--cameras", str(run / "data" / "eval"))
     old = tmp_path / "old"  # a run dir of a dinerf that did not record its data folder
     shutil.copytree(run / "robots" / "1", old)
     (old / "data.json").unlink()
