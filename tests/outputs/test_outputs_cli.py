@@ -163,8 +163,28 @@ def test_eval_matches_agent_evaluation(run, tmp_path):
     assert {i: r["psnr"] for i, r in by_hand["robots"].items()} == {i: r["psnr"] for i, r in doc["robots"].items()}
 
 
-def _density_numpy(cfg: dict, t: dict[str, np.ndarray], x_shared: np.ndarray) -> np.ndarray:
-    """The field's density from field.json + field.safetensors alone (docs/export.md)."""
+def _mlp(layers: list[dict], t: dict[str, np.ndarray], h: np.ndarray) -> np.ndarray:
+    for layer in layers:
+        h = h @ t[layer["weight"]].T + t[layer["bias"]]
+        h = np.maximum(h, 0) if layer["activation"] == "relu" else h
+    return h
+
+
+def _sh4(d: np.ndarray) -> np.ndarray:
+    """docs/export.md's real SH basis of degree 4, in its order.  [N, 3] unit -> [N, 16]."""
+    x, y, z = d.T
+    xx, yy, zz = x * x, y * y, z * z
+    return np.stack([np.full_like(x, 0.28209479177387814), -0.4886025119029199 * y, 0.4886025119029199 * z,
+                     -0.4886025119029199 * x, 1.0925484305920792 * x * y, -1.0925484305920792 * y * z,
+                     0.31539156525252005 * (2 * zz - xx - yy), -1.0925484305920792 * x * z,
+                     0.5462742152960396 * (xx - yy), -0.5900435899266435 * y * (3 * xx - yy),
+                     2.890611442640554 * x * y * z, -0.4570457994644658 * y * (4 * zz - xx - yy),
+                     0.3731763325901154 * z * (2 * zz - 3 * xx - 3 * yy), -0.4570457994644658 * x * (4 * zz - xx - yy),
+                     1.445305721320277 * z * (xx - yy), -0.5900435899266435 * x * (xx - 3 * yy)], -1)
+
+
+def _field_numpy(cfg: dict, t: dict[str, np.ndarray], x_shared: np.ndarray, d_shared: np.ndarray):
+    """The field's density and colour from field.json + field.safetensors alone (docs/export.md)."""
     b = np.array(cfg["frame"]["box_from_shared"])
     x = (x_shared @ b[:3, :3].T + b[:3, 3]).astype(np.float32)
     assert not cfg["frame"]["unbounded"]  # RGBA procedural images: a bounded field
@@ -191,11 +211,13 @@ def _density_numpy(cfg: dict, t: dict[str, np.ndarray], x_shared: np.ndarray) ->
             f += w[:, None] * table[(idx & np.uint32(size - 1)).astype(np.int64) + level * size]
         lw = hg["level_weights"]
         feats.append(f * (1.0 if lw is None else lw[level]))
-    h = np.concatenate(feats, axis=1)
-    for layer in cfg["density_mlp"]["layers"]:
-        h = h @ t[layer["weight"]].T + t[layer["bias"]]
-        h = np.maximum(h, 0) if layer["activation"] == "relu" else h
-    return np.exp(h[:, 0] + cfg["density_mlp"]["density_bias"]) * inside
+    out = _mlp(cfg["density_mlp"]["layers"], t, np.concatenate(feats, axis=1))
+    sigma = np.exp(out[:, 0] + cfg["density_mlp"]["density_bias"]) * inside
+    rot = b[:3, :3] / np.cbrt(np.linalg.det(b[:3, :3]))
+    d = d_shared @ rot.T
+    assert cfg["color_mlp"]["sh_degree"] == 4 and cfg["color_mlp"]["output"] == "sigmoid"
+    rgb = 1 / (1 + np.exp(-_mlp(cfg["color_mlp"]["layers"], t, np.concatenate([out[:, 1:], _sh4(d)], axis=1))))
+    return sigma, rgb
 
 
 def test_export_cameras_geometry_and_weights(run, tmp_path):
@@ -240,12 +262,16 @@ def test_export_cameras_geometry_and_weights(run, tmp_path):
     shared_from_box = np.linalg.inv(box.numpy())
     probe_box = np.concatenate([rng.uniform(-1, 1, (64, 3)), transform_points(box, torch.from_numpy(xyz[:64])).numpy()])
     probe = probe_box @ shared_from_box[:3, :3].T + shared_from_box[:3, 3]
-    mine = _density_numpy(cfg, tensors, probe)
-    f = trainers[1].field
-    with torch.no_grad():
-        ours = f.density(torch.from_numpy(probe_box).float(), trainers[1].level_weights())[0].double().numpy()
-    assert ours.max() > 3  # the probe reaches the dense part, where the numbers are not just exp(bias)
-    np.testing.assert_allclose(mine, ours, rtol=2e-4, atol=1e-6)
+    dirs = rng.normal(size=probe.shape)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    sigma, rgb = _field_numpy(cfg, tensors, probe, dirs)
+    f, r = trainers[1].field, box[:3, :3] / torch.linalg.det(box[:3, :3]).abs() ** (1 / 3)
+    with torch.no_grad():  # our field, at the same points and directions in the box
+        ours_sigma, ours_rgb = f(torch.from_numpy(probe_box).float(), (torch.from_numpy(dirs) @ r.T).float(),
+                                 trainers[1].level_weights())
+    assert ours_sigma.max() > 3  # the probe reaches the dense part, where the numbers are not just exp(bias)
+    np.testing.assert_allclose(sigma, ours_sigma.double().numpy(), rtol=2e-4, atol=1e-6)
+    np.testing.assert_allclose(rgb, ours_rgb.double().numpy(), atol=1e-5)
 
 
 def test_bad_input_is_one_line(run, tmp_path):
@@ -267,6 +293,9 @@ def test_bad_input_is_one_line(run, tmp_path):
     shutil.copytree(run / "robots" / "1", old)
     (old / "data.json").unlink()
     assert "pass --data" in fails("eval", str(old))
+    lonely = tmp_path / "lonely" / "robot1"  # a robot folder that is not part of a split
+    shutil.copytree(run / "data" / "robot1", lonely)
+    assert "no held-out views" in fails("eval", str(old), "--data", str(lonely))
     ok_here("eval", str(old), "--data", str(run / "data" / "robot1"), "--no-per-view", "--no-ssim")
     raw = bytearray((old / "checkpoint.safetensors").read_bytes())
     raw[-100] ^= 0xFF
