@@ -7,6 +7,7 @@
     <run dir>/telemetry.jsonl          one agent.telemetry.RoundRecord per completed round
     <run dir>/events.jsonl             joins, alignment, failovers, silent neighbours ...
     <run dir>/done.json                written once every round is done
+    <run dir>/data.json                the robot's data folder (and swarm file), so that outputs find its views
     <run dir>/sfm/                     an images-only robot's own SfM, computed once, reused on restart
 
 Checkpoints and snapshots are state files (``agent.statefile``: safetensors + JSON, checksummed,
@@ -43,6 +44,7 @@ ROUNDS = "rounds"
 TELEMETRY = "telemetry.jsonl"
 EVENTS = "events.jsonl"
 DONE = "done.json"
+DATA_RECORD = "data.json"  # absent in run folders of dinerf before it: commands then ask for --data
 ROBOT_KIND, ROUND_KIND, BASELINE_KIND = "robot-checkpoint", "round-snapshot", "baseline"
 
 
@@ -81,6 +83,7 @@ class RunFolder:
     telemetry = property(lambda self: self.path / TELEMETRY)
     events = property(lambda self: self.path / EVENTS)
     done = property(lambda self: self.path / DONE)
+    data_record = property(lambda self: self.path / DATA_RECORD)
     sfm_cache = property(lambda self: self.path / SFM_CACHE)
 
     def round_path(self, round_index: int) -> Path:
@@ -152,6 +155,24 @@ class RunFolder:
                                   f"not robot {robot_id}'s round {round_index}")
         return {k: _field(path, snap, k, dict) for k in ("field", "grid", "pose")}
 
+    def write_data_record(self, data_dir: str | Path, swarm_file: str | Path | None = None) -> None:
+        """Say where this robot's views come from (absolute paths): render, eval and export read it."""
+        doc = {"data": str(Path(data_dir).resolve()),
+               "swarm": None if swarm_file is None else str(Path(swarm_file).resolve())}
+        atomic_write_text(self.data_record, json.dumps(doc, indent=2) + "\n")
+
+    def recorded_data_dir(self) -> Path | None:
+        """The data folder :meth:`write_data_record` wrote, or None when the run folder has no record."""
+        from agent.data.views import DataError
+        from agent.files import read_json
+
+        if not self.data_record.is_file():
+            return None
+        doc = read_json(self.data_record, DataError)
+        if not isinstance(doc, dict) or not isinstance(doc.get("data"), str):
+            raise CheckpointError(self.data_record, "malformed: expected {\"data\": <folder>}")
+        return Path(doc["data"])
+
     def write_done(self, robot_id: int, rounds: int, rejected: dict[str, int]) -> None:
         done = {"robot": robot_id, "rounds": rounds, "time": time.time(), "rejected": rejected}
         atomic_write_text(self.done, json.dumps(done, indent=2) + "\n")
@@ -165,13 +186,25 @@ def load_into(trainer: RobotTrainer, path: Path, state: dict) -> None:
         raise CheckpointError(path, f"does not fit this model ({type(e).__name__}: {e})") from None
 
 
-def load_for_eval(run_dir: str | Path, data_dir: str | Path, round: int | None = None) -> RobotTrainer:
-    """Rebuild a robot's trainer from its run folder (final checkpoint or ``rounds/<k>``)."""
+def load_for_eval(run_dir: str | Path, data_dir: str | Path, round: int | None = None,
+                  device: str | None = None) -> RobotTrainer:
+    """Rebuild a robot's trainer from its run folder (final checkpoint or ``rounds/<k>``).
+
+    device: where to rebuild it (default: the device it trained on), e.g. to render a GPU run on a CPU."""
+    import dataclasses
+
+    from agent.config_io import InvalidValue
+
     folder = RunFolder(run_dir, create=False)
     ck = folder.load()
     if ck is None:
         raise FileNotFoundError(f"{folder.checkpoint}: no checkpoint")
     training = ck.training
+    if device is not None:
+        try:
+            training = dataclasses.replace(training, train=dataclasses.replace(training.train, device=device))
+        except InvalidValue as e:
+            raise ConfigError(f"--device: {e}") from None
     views = folder.load_views(data_dir, training.image_width)
     trainer = build_robot(ck.robot_id, views, ck.box_from_shared, training).trainer
     load_into(trainer, folder.checkpoint, ck.trainer)

@@ -28,7 +28,7 @@ def up(
     overrides: list[str] = typer.Option([], "--set", help="Override a swarm-file setting, e.g. --set training.rounds=5 (repeatable)."),
 ) -> None:
     """Join the swarm and train: one robot's daemon (resumes from --run-dir if it holds a checkpoint)."""
-    from agent.checkpoint import SFM_CACHE
+    from agent.checkpoint import SFM_CACHE, RunFolder
     from agent.daemon import Daemon
     from agent.data.folder import read_scene
     from agent.data.loaders import load_views
@@ -50,6 +50,7 @@ def up(
     scene = read_scene(base_dir / cfg.swarm.scene)
     run_dir = run_dir or Path("runs") / cfg.swarm.name / f"robot{robot_id}"
     check_output_folder(run_dir, "--run-dir")
+    RunFolder(run_dir).write_data_record(data, swarm_path)  # render/eval/export find the views through it
     if scene.box_from_shared is None and cfg.daemon.initial_pose != "coarse":
         raise UserError(f"{base_dir / cfg.swarm.scene} has no field box (robots with images only): set "
                         "daemon.initial_pose = 'coarse' so that the reference shares the box of its SfM frame")

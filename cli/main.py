@@ -22,6 +22,7 @@ COMMAND_MODULES = [
     "cli.cmd_up",
     "cli.cmd_status",
     "cli.cmd_scenario",
+    "cli.cmd_outputs",
     "cli.cmd_config",
     "cli.cmd_health",
 ]

@@ -18,6 +18,7 @@ from agent.config_io import InvalidValue, check
 
 # Spatial-hash primes of instant-NGP, as int32 (wrap-around multiplication is the hash).
 _PRIMES_I32 = (1, 2654435761 - 2**32, 805459861)
+HASH_PRIMES = tuple(p % 2**32 for p in _PRIMES_I32)  # the same, unsigned (for exports that other programs read)
 
 
 @dataclass
