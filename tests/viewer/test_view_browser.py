@@ -35,6 +35,13 @@ ROUNDS = 2
 SHOTS = Path(os.environ.get("DINERF_VIEW_SHOTS", "")) if os.environ.get("DINERF_VIEW_SHOTS") else None
 
 
+def tiny_swarm(root: Path):
+    """Two robots, 24 views of 32 px, 2 rounds of 60 steps: ~17 dB, enough to see the scene."""
+    return make_swarm(root, robots=2, topology="line", views=24, width=32, training={
+        "rounds": ROUNDS, "steps_per_round": 60, "consensus": {"rho0": 1e-5}, "train": {"rays_per_step": 1024}},
+        daemon={"startup_wait_s": 10.0})
+
+
 def _start_viewer(run: Path, data: Path, log: Path) -> tuple[subprocess.Popen, int]:
     env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")
     cmd = [sys.executable, "-m", "cli", "view", str(run), "--data", str(data), "--port", "0", "--poll", "0.5",
@@ -69,9 +76,7 @@ def test_viewer_shows_the_field_the_cameras_and_each_robots_round_and_psnr(tmp_p
     from playwright.sync_api import sync_playwright
     import cv2
 
-    swarm = make_swarm(tmp_path, robots=2, topology="line", views=24, width=32, training={
-        "rounds": ROUNDS, "steps_per_round": 60, "consensus": {"rho0": 1e-5}, "train": {"rays_per_step": 1024}},
-        daemon={"startup_wait_s": 10.0})
+    swarm = tiny_swarm(tmp_path)
     viewer, t_start = None, time.monotonic()
     try:
         swarm.start_all()
