@@ -23,18 +23,17 @@ LOOPBACK = ("127.0.0.1", "localhost", "::1")
 class Viewer:
     """The viser server of one run: scene, panel, one render scheduler per browser, two threads."""
 
-    def __init__(self, sources: dict, shown: int, width: int, moving_width: int, poll_s: float) -> None:
-        from agent.viewer.scene import colour_of
-        from agent.viewer.source import RobotModel
-
-        self.models = {i: RobotModel(s) for i, s in sources.items()}
-        self.colours = {i: colour_of(list(sources), i) for i in sources}
+    def __init__(self, find, shown: int, width: int, moving_width: int, poll_s: float) -> None:
+        self.find = find  # () -> the run's RobotSources by id (agent.viewer.source.find_robots)
+        self.models: dict = {}
+        self.colours: dict[int, tuple[int, int, int]] = {}
+        self._add_robots(self.find())
         self.shown, self.width, self.moving_width, self.poll_s = shown, width, moving_width, poll_s
         self.schedulers: dict[int, object] = {}  # client id -> RenderScheduler, once its camera reported
         self.lock = threading.Lock()
         self.stop = threading.Event()
         self.server = None
-        self.panel = None
+        self.panel = self.picker = None
         self.homed = False
         self.frustum_scale = None
 
@@ -47,8 +46,9 @@ class Viewer:
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.gui.configure_theme(control_width="large")
         self.server.scene.set_up_direction("+z")
-        picker = self.server.gui.add_dropdown("Field of robot", [str(i) for i in self.models], initial_value=str(self.shown))
-        picker.on_update(lambda _: self._show(int(picker.value)))
+        self.picker = self.server.gui.add_dropdown("Field of robot", [str(i) for i in self.models],
+                                                   initial_value=str(self.shown))
+        self.picker.on_update(lambda _: self._show(int(self.picker.value)))
         self.panel = self.server.gui.add_markdown("")
         self.server.on_client_connect(self._connected)
         self.server.on_client_disconnect(lambda c: self._forget(c.client_id))
@@ -63,6 +63,17 @@ class Viewer:
         self.stop.set()
         if self.server is not None:
             self.server.stop()
+
+    def _add_robots(self, sources: dict) -> list[int]:
+        """Watch the robots not seen before (robots started by hand appear one by one); returns their ids."""
+        from agent.viewer.scene import colour_of
+        from agent.viewer.source import RobotModel
+
+        new = [i for i in sources if i not in self.models]
+        if new:  # a new dict, never a changed one: other threads iterate it
+            self.colours = {**self.colours, **{i: colour_of(i) for i in new}}
+            self.models = dict(sorted({**self.models, **{i: RobotModel(sources[i]) for i in new}}.items()))
+        return new
 
     def _show(self, robot_id: int) -> None:
         self.shown = robot_id
@@ -126,9 +137,16 @@ class Viewer:
         self.panel.content = panel_markdown(statuses, self.shown, self.models[self.shown].round, self.colours, errors)
 
     def _poll_loop(self) -> None:
+        from agent.data.views import DataError
+
         while not self.stop.wait(self.poll_s):
             try:
-                for rid, model in self.models.items():
+                try:
+                    if self._add_robots(self.find()):
+                        self.picker.options = [str(i) for i in self.models]
+                except DataError:
+                    pass  # the folder as it was when we started still holds
+                for rid, model in list(self.models.items()):
                     if model.refresh():
                         self._draw_cameras(rid)
                         if rid == self.shown:
@@ -188,11 +206,11 @@ def view(
     if poll <= 0:
         raise UserError(f"--poll {poll}: must be > 0 seconds")
     set_threads(threads)
-    sources = find_robots(run_dir, data)
+    sources = find_robots(run_dir, data)  # once here: a folder that is no run is refused before any server starts
     shown = min(sources) if robot is None else robot
     if shown not in sources:
         raise UserError(f"--robot {robot}: not one of this run's robots {sorted(sources)}")
-    viewer = Viewer(sources, shown, width, moving_width, poll)
+    viewer = Viewer(lambda: find_robots(run_dir, data), shown, width, moving_width, poll)
     bound = viewer.serve(host, port)
     if host not in LOOPBACK:
         typer.echo(f"warning: listening on {host}: anyone who can reach it sees the model (no authentication)")

@@ -22,13 +22,14 @@ from agent.viewer.source import RobotStatus
 __all__ = ["PALETTE", "colour_of", "Frustum", "frustums", "quat_from_matrix", "matrix_from_quat",
            "c2w_from_browser", "HomeView", "home_view", "render_at_camera", "RenderScheduler", "panel_markdown"]
 
-# Saturated and far from the white background and from each other: robot k (in id order) gets PALETTE[k % n].
+# Saturated and far from the white background and from each other.
 PALETTE = [(230, 25, 75), (0, 130, 200), (60, 180, 75), (245, 130, 48), (145, 30, 180), (240, 50, 230),
            (70, 200, 200), (128, 128, 0)]
 
 
-def colour_of(robot_ids: list[int], robot_id: int) -> tuple[int, int, int]:
-    return PALETTE[sorted(robot_ids).index(robot_id) % len(PALETTE)]
+def colour_of(robot_id: int) -> tuple[int, int, int]:
+    """Robot 1 red, 2 blue, 3 green ...: by id, so a robot keeps its colour when others appear."""
+    return PALETTE[(robot_id - 1) % len(PALETTE)]
 
 
 def quat_from_matrix(rot: np.ndarray) -> np.ndarray:
