@@ -44,7 +44,9 @@ class Viewer:
         for model in self.models.values():
             model.refresh()
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
-        self.server.gui.configure_theme(control_width="large")
+        # viser's share button tunnels the page through a public relay: never from here, whoever clicks it
+        self.server.request_share_url = lambda *args, **kwargs: None
+        self.server.gui.configure_theme(control_width="large", show_share_button=False)
         self.server.scene.set_up_direction("+z")
         self.picker = self.server.gui.add_dropdown("Field of robot", [str(i) for i in self.models],
                                                    initial_value=str(self.shown))
