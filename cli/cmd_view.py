@@ -79,6 +79,9 @@ class Viewer:
 
     def _show(self, robot_id: int) -> None:
         self.shown = robot_id
+        if self.models[robot_id].trainer is None:  # nothing to draw yet: not the other robot's picture either
+            for client in self.server.get_clients().values():
+                client.scene.set_background_image(None)
         self._model_changed()
         self._update_panel()
 

@@ -5,7 +5,8 @@ once robot 1 has its first checkpoint, so it must reload the newer ones and re-r
 while the swarm trains. Chromium (the Debian package, driven by playwright; no browser is
 downloaded) then loads the page: the screenshot must show the field (the centre of the picture
 is not the plain background, and its colours vary) and both robots' cameras (pixels in their
-colours), and the panel must give each robot's final round and PSNR.
+colours), and the panel must give each robot's final round and PSNR. A drag turns the camera
+and the picture follows; the panel's picker switches to robot 2's model.
 
 Needs /usr/bin/chromium (``apt-get install -y chromium``); skipped with that reason without it.
 """
@@ -112,11 +113,18 @@ def test_viewer_shows_the_field_the_cameras_and_each_robots_round_and_psnr(tmp_p
             page.wait_for_timeout(2500)
             page.screenshot(path=str(tmp_path / "turned.png"))
             turned = cv2.cvtColor(cv2.imread(str(tmp_path / "turned.png")), cv2.COLOR_BGR2RGB)
+            # the panel's robot picker: robot 2's own model instead
+            page.get_by_text("Field of robot").locator("xpath=following::input[1]").click()
+            page.get_by_role("option", name="2", exact=True).click()
+            page.wait_for_timeout(2500)
+            switched = page.inner_text("body")
+            page.screenshot(path=str(tmp_path / "robot2.png"))
+            other = cv2.cvtColor(cv2.imread(str(tmp_path / "robot2.png")), cv2.COLOR_BGR2RGB)
             browser.close()
         print(f"page right after {time.monotonic() - t0:.1f} s")
         if SHOTS:
             SHOTS.mkdir(parents=True, exist_ok=True)
-            for name in ("view.png", "turned.png"):
+            for name in ("view.png", "turned.png", "robot2.png"):
                 shutil.copy(tmp_path / name, SHOTS / name)
         for i, row in zip(swarm.robots, done_rows):
             assert psnr[i] is not None and row.search(text), (i, text)
@@ -128,6 +136,8 @@ def test_viewer_shows_the_field_the_cameras_and_each_robots_round_and_psnr(tmp_p
         middle = (slice(int(0.3 * h), int(0.7 * h)), slice(int(0.3 * w), int(0.6 * w)))
         assert _field_shown(turned), "after the drag the field is not in the middle of the picture"
         assert np.abs(turned[middle].astype(int) - shot[middle]).mean() > 5, "the picture did not follow the camera"
+        assert f"Field drawn: robot 2's model, round {ROUNDS}." in switched, switched
+        assert _field_shown(other), "robot 2's field is not in the middle of the picture"
         assert viewer.poll() is None, (tmp_path / "view.log").read_text()[-3000:]
     finally:
         swarm.stop()
