@@ -25,6 +25,7 @@ COMMAND_MODULES = [
     "cli.cmd_outputs",
     "cli.cmd_config",
     "cli.cmd_health",
+    "cli.cmd_view",
 ]
 
 
