@@ -43,6 +43,8 @@ def split(
     force: bool = typer.Option(False, help="Replace a previous split in --out."),
     topology: str = typer.Option("full", help="Topology written to swarm.toml: full | ring | star | line."),
     port_base: int = typer.Option(7500, help="swarm.toml endpoints: robot i listens on tcp/127.0.0.1:<base+i>."),
+    rounds: int = typer.Option(None, help="swarm.toml [training] rounds (default: agent.swarm.SwarmTrainingConfig's)."),
+    steps: int = typer.Option(None, help="swarm.toml [training] steps_per_round (default: SwarmTrainingConfig's)."),
 ) -> None:
     """Split a dataset into N robot folders by sectors of view direction (Di-NeRF's setting) or by trajectory."""
     from agent.data.split import SplitConfig, split_dataset, write_split
@@ -71,7 +73,8 @@ def split(
     ids = sorted(result.robots)
     name = "".join(c if c.isalnum() or c in "-_" else "-" for c in Path(out).resolve().name) or "swarm"
     frames = frames_of_split(cfg.frame, cfg.images_only)
-    write_swarm_file(Path(out) / SWARM_FILE, swarm_doc(name, ids, frames, topology,
+    training = {k: v for k, v in (("rounds", rounds), ("steps_per_round", steps)) if v is not None}
+    write_swarm_file(Path(out) / SWARM_FILE, swarm_doc(name, ids, frames, topology, training=training,
                                                       network={"endpoints": loopback_endpoints(ids, port_base)}),
                      header="written by `dinerf-agent split`; edit freely (see cli/swarm_file.py)")
     _print_split(result, f"{len(views)} views of {data} -> {out}")
