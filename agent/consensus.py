@@ -33,6 +33,10 @@ class ConsensusConfig:
     rho0: float = 1e-5
     rho_growth: float = 1.0  # rho_k = rho0 * rho_growth**k  (DiNNO grows it slowly)
     rho_max: float = 1.0
+    # rho of the dense MLP weights against the hash table's: every ray's gradient reaches an MLP
+    # weight, only a few a hash entry, so one rho that lets the table follow its data leaves the
+    # decoders free to drift apart, and a neighbour's entries are then decoded by a different MLP.
+    mlp_rho_scale: float = 1.0
     forget_edge_after: int = 2  # an edge silent for this many rounds restarts its dual at zero
     # (a cut link, a dead neighbour): the old y_ij priced a disagreement both models have since
     # left behind, and applied on return it pushes in a stale direction. 0 = never forget.
@@ -40,6 +44,8 @@ class ConsensusConfig:
     def __post_init__(self) -> None:
         if self.rho0 <= 0 or self.rho_growth < 1.0 or self.rho_max < self.rho0:
             raise ValueError("need rho0 > 0, rho_growth >= 1 and rho_max >= rho0")
+        if self.mlp_rho_scale <= 0:
+            raise ValueError("mlp_rho_scale must be > 0")
         if self.forget_edge_after < 0:
             raise ValueError("forget_edge_after must be >= 0 (0 = never)")
 
@@ -50,8 +56,12 @@ class ConsensusConfig:
 class Consensus:
     """The C-ADMM state of one robot: duals, the current round's anchors and rho."""
 
-    def __init__(self, params: Sequence[Tensor], cfg: ConsensusConfig) -> None:
+    def __init__(self, params: Sequence[Tensor], cfg: ConsensusConfig, rho_scales: Sequence[float] | None = None) -> None:
+        """rho_scales: per parameter, a factor on rho (None: 1 for all)."""
         self.cfg = cfg
+        self.rho_scales = list(rho_scales) if rho_scales is not None else [1.0] * len(params)
+        if len(self.rho_scales) != len(params):
+            raise ValueError(f"{len(self.rho_scales)} rho scales for {len(params)} parameters")
         self._zeros = [torch.zeros_like(p, memory_format=torch.contiguous_format) for p in params]
         self.edge_duals: dict[int, list[Tensor]] = {}  # y_ij, per neighbour j ever heard
         self.edge_round: dict[int, int] = {}  # round of y_ij's last update
@@ -97,7 +107,7 @@ class Consensus:
         for i, p in enumerate(params):
             g = self.duals[i].clone()
             if self.anchor_sum is not None:
-                g.add_(p.detach() * self.num_neighbours - self.anchor_sum[i], alpha=2 * self.rho)
+                g.add_(p.detach() * self.num_neighbours - self.anchor_sum[i], alpha=2 * self.rho * self.rho_scales[i])
             if p.grad is None:
                 p.grad = g
             else:
@@ -115,7 +125,7 @@ class Consensus:
             x = p.detach()
             total += float((x * self.duals[i]).sum())
             if self.anchor_sum is not None:
-                total += self.rho * float(self.num_neighbours * (x * x).sum() - 2 * (x * self.anchor_sum[i]).sum())
+                total += self.rho * self.rho_scales[i] * float(self.num_neighbours * (x * x).sum() - 2 * (x * self.anchor_sum[i]).sum())
         return total
 
     @torch.no_grad()
@@ -126,8 +136,8 @@ class Consensus:
             self._forget_if_silent(j, self.round)  # a returning edge is usually seen here first
             edge = self.edge_duals.setdefault(j, [z.clone() for z in self._zeros])
             self.edge_round[j] = self.round
-            for y, o, t in zip(edge, own, theta_j):
-                y.add_(o.detach() - t, alpha=self.rho)
+            for y, o, t, scale in zip(edge, own, theta_j, self.rho_scales):
+                y.add_(o.detach() - t, alpha=self.rho * scale)
 
     @torch.no_grad()
     def reset_duals(self) -> None:

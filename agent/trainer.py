@@ -208,7 +208,8 @@ class RobotTrainer:
             eps=o.eps,
         )
         self.base_lrs = [g["lr"] for g in self.optimizer.param_groups]
-        self.consensus = Consensus(list(self.field.parameters()), consensus) if consensus else None
+        self.consensus = Consensus(list(self.field.parameters()), consensus, self._rho_scales(consensus)) \
+            if consensus else None
         self.step = 0
         # Running fraction of evaluated samples that early termination would keep. While it is
         # high (a young, translucent field) the no-grad visibility pass prunes little and is skipped.
@@ -415,6 +416,13 @@ class RobotTrainer:
             "depth_loss": depth_loss.item(),
             "samples": out.num_samples / n,
         }
+
+    def _rho_scales(self, consensus: ConsensusConfig | None) -> list[float] | None:
+        """Per field parameter: 1 for the hash table, ``mlp_rho_scale`` for the MLPs' weights."""
+        if consensus is None:
+            return None
+        return [1.0 if name.startswith("encoding.") else consensus.mlp_rho_scale
+                for name, _ in self.field.named_parameters()]
 
     def train(self, steps: int, on_step: Callable[[int], None] | None = None) -> StepStats:
         """Run ``steps`` optimiser steps; ``on_step`` is called after each (progress bars)."""

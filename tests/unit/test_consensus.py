@@ -24,6 +24,32 @@ def test_penalty_gradient_matches_autograd():
     assert torch.allclose(explicit, p.grad, atol=1e-5)
 
 
+def test_a_parameter_with_a_rho_scale_is_penalised_and_priced_that_much_more():
+    table, mlp = torch.zeros(4), torch.zeros(4)
+    c = Consensus([table, mlp], ConsensusConfig(rho0=0.1, mlp_rho_scale=30.0), rho_scales=[1.0, 30.0])
+    nbrs = {2: [torch.ones(4), torch.ones(4)]}
+    c.begin_round(0, [table, mlp], nbrs)
+    c.add_penalty_grad([table, mlp])
+    assert torch.allclose(mlp.grad, 30 * table.grad) and bool((table.grad != 0).all())
+    c.dual_update([table, mlp], nbrs)
+    assert torch.allclose(c.edge_duals[2][1], 30 * c.edge_duals[2][0])
+    with pytest.raises(ValueError):
+        Consensus([table], ConsensusConfig(), rho_scales=[1.0, 2.0])
+    with pytest.raises(ValueError):
+        ConsensusConfig(mlp_rho_scale=0.0)
+
+
+def test_the_trainer_gives_the_hash_table_rho_and_the_mlps_the_scaled_rho():
+    from agent.data.loaders import load_views
+    from agent.trainer import RobotTrainer, TrainConfig
+
+    views = load_views("procedural:views=4,width=8")
+    trainer = RobotTrainer(views, TrainConfig(), torch.eye(4), consensus=ConsensusConfig(mlp_rho_scale=100.0))
+    names = [n for n, _ in trainer.field.named_parameters()]
+    scales = dict(zip(names, trainer.consensus.rho_scales))
+    assert scales["encoding.table"] == 1.0 and all(v == 100.0 for n, v in scales.items() if n != "encoding.table")
+
+
 def test_rho_schedule_and_validation():
     cfg = ConsensusConfig(rho0=0.5, rho_growth=1.1, rho_max=0.6)
     assert cfg.rho(0) == 0.5 and cfg.rho(1) == pytest.approx(0.55) and cfg.rho(5) == 0.6
