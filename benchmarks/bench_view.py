@@ -1,11 +1,11 @@
 """How long `dinerf-agent view` takes to draw one picture on the CPU: a reload and renders per width.
 
-The model is robot ``--robot``'s checkpoint in a run folder (the layouts of ``agent.viewer.source``);
+The model is robot ``--robot``'s checkpoint in a run folder (the layouts of ``agent.runs``);
 the camera is the viewer's home view (out between two training cameras, the whole scene in
 sight). Printed: seconds to rebuild the model from its checkpoint (what each new round costs the
 viewer), and the median of ``--repeats`` renders at each width, with 1 torch thread as `view` uses.
 
-    .venv/bin/python benchmarks/bench_view.py runs/swarm1 --data swarm1 --widths 48,64,128,160
+    .venv/bin/python benchmarks/bench_view.py runs/swarm1 --widths 48,64,128,160
     PYTHONPATH=. .venv/bin/python benchmarks/bench_view.py --train /tmp/bench-view   # the viewer test's swarm
 """
 
@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from agent.runs import open_run
 from agent.viewer.scene import home_view, render_at_camera
-from agent.viewer.source import RobotModel, find_robots
+from agent.viewer.source import RobotModel
 
 
 def look_at_c2w(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
@@ -51,9 +52,9 @@ def main() -> None:
         swarm = tiny_swarm(args.train)
         swarm.start_all()
         swarm.wait_all()
-        args.run_dir, args.data = swarm.root / "run", swarm.root
+        args.run_dir = swarm.root / "run"  # its run dirs record their data folders
     torch.set_num_threads(1)
-    sources = find_robots(args.run_dir, args.data)
+    sources = open_run(args.run_dir, args.data, pending=True).robots
     model = RobotModel(sources[args.robot if args.robot is not None else min(sources)])
     model.refresh()  # views loaded once
     model._stamp = None  # noqa: SLF001 - measure a reload as a new round makes it

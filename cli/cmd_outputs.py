@@ -10,17 +10,15 @@ import typer
 
 from cli.errors import UserError, friendly_errors
 from cli.main import app
-from cli.options import check_output_folder, progress_bar, set_threads
+from cli.options import RUN_DATA_HELP, RUN_HELP, check_output_folder, progress_bar, set_threads
 
-RUN_HELP = "A scenario run folder (robots/<id>/ + data/) or one robot's --run-dir of `up`."
-DATA_HELP = "The robot's data folder, for a --run-dir that does not record it (older dinerf)."
 ROBOT_HELP = "Which robot's field (default: the lowest id, the usual reference)."
 ROUND_HELP = "Use the snapshot kept after this round (rounds/<k>) instead of the last checkpoint."
 DEVICE_HELP = "Torch device to rebuild the field on (default: the one it trained on), e.g. cpu."
 
 
 def _open(run_dir: Path, data: Path | None, threads: int):
-    from agent.outputs.runs import open_run
+    from agent.runs import open_run
 
     set_threads(threads)
     return open_run(run_dir, data)
@@ -50,7 +48,7 @@ def render(
     video: str = typer.Option("gif", "--video", help="gif, mp4 or none."),
     fps: float = typer.Option(15.0, "--fps", help="Video frames per second."),
     round: int = typer.Option(None, "--round", help=ROUND_HELP),
-    data: Path = typer.Option(None, "--data", help=DATA_HELP),
+    data: Path = typer.Option(None, "--data", help=RUN_DATA_HELP),
     device: str = typer.Option(None, "--device", help=DEVICE_HELP),
     threads: int = typer.Option(2, help="CPU threads for torch."),
 ) -> None:
@@ -107,7 +105,7 @@ def eval_(
     ssim: bool = typer.Option(True, "--ssim/--no-ssim", help="Also compute SSIM."),
     json_out: Path = typer.Option(None, "--json", help="Also write the scores to this JSON file."),
     per_view: bool = typer.Option(True, "--per-view/--no-per-view", help="Print the per-view table."),
-    data: Path = typer.Option(None, "--data", help=DATA_HELP),
+    data: Path = typer.Option(None, "--data", help=RUN_DATA_HELP),
     device: str = typer.Option(None, "--device", help=DEVICE_HELP),
     threads: int = typer.Option(2, help="CPU threads for torch."),
 ) -> None:
@@ -175,7 +173,7 @@ def export(
     round: int = typer.Option(None, "--round", help=ROUND_HELP),
     resolution: int = typer.Option(128, "--resolution", help="Lattice points per axis for the point cloud and mesh."),
     density: float = typer.Option(10.0, "--density", help="Density threshold (per box unit) of points and surface."),
-    data: Path = typer.Option(None, "--data", help=DATA_HELP),
+    data: Path = typer.Option(None, "--data", help=RUN_DATA_HELP),
     device: str = typer.Option(None, "--device", help=DEVICE_HELP),
     threads: int = typer.Option(2, help="CPU threads for torch."),
 ) -> None:

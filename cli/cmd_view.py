@@ -15,7 +15,7 @@ import typer
 
 from cli.errors import UserError, friendly_errors
 from cli.main import app
-from cli.options import set_threads
+from cli.options import RUN_DATA_HELP, RUN_HELP, set_threads
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
@@ -24,7 +24,7 @@ class Viewer:
     """The viser server of one run: scene, panel, one render scheduler per browser, two threads."""
 
     def __init__(self, find, shown: int, width: int, moving_width: int, poll_s: float) -> None:
-        self.find = find  # () -> the run's RobotSources by id (agent.viewer.source.find_robots)
+        self.find = find  # () -> the run's robots by id (agent.runs.RobotRun), robots still starting too
         self.models: dict = {}
         self.colours: dict[int, tuple[int, int, int]] = {}
         self._add_robots(self.find())
@@ -192,9 +192,8 @@ class Viewer:
 @app.command()
 @friendly_errors
 def view(
-    run_dir: Path = typer.Argument(..., help="A run folder: a scenario's --out, up's runs/<swarm>/, or one --run-dir."),
-    data: Path = typer.Option(None, "--data", help="The robots' images (a split folder, or one robot's folder); "
-                              "not needed for a scenario run."),
+    run_dir: Path = typer.Argument(..., help=RUN_HELP),
+    data: Path = typer.Option(None, "--data", help=RUN_DATA_HELP),
     port: int = typer.Option(8080, help="Port of the web page (the next free one if taken)."),
     host: str = typer.Option("127.0.0.1", help="Address to listen on; 0.0.0.0 shows the model to the whole network."),
     robot: int = typer.Option(None, "--robot", help="Whose model to render (default: the lowest id)."),
@@ -204,18 +203,21 @@ def view(
     threads: int = typer.Option(1, help="CPU threads for torch (the swarm may be training beside it)."),
 ) -> None:
     """Look at a swarm's field and cameras in the browser, while it trains or after."""
-    from agent.viewer.source import find_robots
+    from agent.runs import open_run
+
+    def find() -> dict:
+        return open_run(run_dir, data, pending=True).robots
 
     if not (8 <= moving_width <= width <= 1024):
         raise UserError(f"--moving-width {moving_width} and --width {width}: need 8 <= moving width <= width <= 1024")
     if poll <= 0:
         raise UserError(f"--poll {poll}: must be > 0 seconds")
     set_threads(threads)
-    sources = find_robots(run_dir, data)  # once here: a folder that is no run is refused before any server starts
+    sources = find()  # once here: a folder that is no run is refused before any server starts
     shown = min(sources) if robot is None else robot
     if shown not in sources:
         raise UserError(f"--robot {robot}: not one of this run's robots {sorted(sources)}")
-    viewer = Viewer(lambda: find_robots(run_dir, data), shown, width, moving_width, poll)
+    viewer = Viewer(find, shown, width, moving_width, poll)
     bound = viewer.serve(host, port)
     if host not in LOOPBACK:
         typer.echo(f"warning: listening on {host}: anyone who can reach it sees the model (no authentication)")

@@ -13,12 +13,12 @@ from typing import Callable
 
 from agent.data.views import DataError
 from agent.evaluation import EvalSet, calibrate_frames, evaluate_robot
-from agent.outputs.runs import OutputRun
+from agent.runs import Run
 
 __all__ = ["score_heldout"]
 
 
-def score_heldout(run: OutputRun, robots: list[int], round: int | None = None, with_ssim: bool = True,
+def score_heldout(run: Run, robots: list[int], round: int | None = None, with_ssim: bool = True,
                   device: str | None = None, echo: Callable[[str], None] = lambda _: None) -> dict:
     """PSNR/SSIM of each robot's field on the split's held-out views.
 

@@ -1,12 +1,8 @@
-"""What the viewer shows, found on disk: the robots of a run folder and their newest models.
+"""What the viewer shows of a run: each robot's newest model and its line in the panel.
 
-A run folder is one of
-- a scenario run ``<out>/`` (robot i's run in ``robots/<i>/``, the split in ``data/``);
-- the run folders of robots started by hand, ``<dir>/robot<i>/`` (``up``'s default ``runs/<swarm>/``);
-- one robot's ``--run-dir`` itself.
-A run folder does not say where its robot's images are (only a scenario keeps them beside it), so
-the last two need ``--data``: the split folder (holding ``robot<i>/``) or the robot's own folder.
-The images are needed: a robot's model is rebuilt from its checkpoint around its own views.
+Which robots a run folder holds and where their images are is agent.runs's (``open_run(...,
+pending=True)``: robots still starting are shown too). The images are needed: a robot's model is
+rebuilt from its checkpoint around its own views.
 """
 
 from __future__ import annotations
@@ -15,84 +11,15 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from agent.checkpoint import EVENTS, TELEMETRY, RunFolder, load_into
-from agent.data.split import robot_folder
+from agent.checkpoint import load_into
 from agent.data.views import DataError, Views
+from agent.runs import RobotRun
 from agent.statefile import CheckpointError
 from agent.swarm import build_robot
 from agent.telemetry import RoundRecord, read_events, read_telemetry
 from agent.trainer import RobotTrainer
 
-__all__ = ["RobotSource", "find_robots", "RobotModel", "RobotStatus"]
-
-_RUN_FILES = ("checkpoint.safetensors", TELEMETRY, EVENTS)
-
-
-@dataclass(frozen=True)
-class RobotSource:
-    """One robot of the run: its run folder and the folder of its images."""
-
-    robot_id: int
-    run_dir: Path
-    data_dir: Path
-
-    @property
-    def folder(self) -> RunFolder:
-        return RunFolder(self.run_dir, create=False)
-
-
-def _is_run_folder(path: Path) -> bool:
-    return any((path / name).exists() for name in _RUN_FILES)
-
-
-def _data_for(data: Path, robot_id: int) -> Path:
-    """``data`` is a split (robot<i>/ inside) or already the robot's own folder."""
-    inside = robot_folder(data, robot_id)
-    return inside if inside.is_dir() else data
-
-
-def _own_id(run_dir: Path, data: Path | None) -> int:
-    """A lone run folder's robot id: from its checkpoint, its telemetry, or its data folder's name."""
-    folder = RunFolder(run_dir, create=False)
-    ck = folder.load()
-    if ck is not None:
-        return ck.robot_id
-    records = read_telemetry(folder.telemetry)
-    if records:
-        return records[-1].robot
-    events = [e for e in read_events(folder.events) if isinstance(e.get("robot"), int)]
-    if events:
-        return events[-1]["robot"]
-    if data is not None and data.name.startswith("robot") and data.name[5:].isdigit():
-        return int(data.name[5:])
-    raise DataError(f"{run_dir}: nothing written yet (no checkpoint, telemetry or events), so its robot is unknown")
-
-
-def find_robots(path: Path, data: Path | None = None) -> dict[int, RobotSource]:
-    """The robots of run folder ``path`` (see the module docstring), by id, in id order."""
-    path = Path(path)
-    if not path.is_dir():
-        raise DataError(f"{path}: {'not a folder' if path.exists() else 'no such folder'} (expected a run folder)")
-    if (path / "robots").is_dir():  # a scenario run
-        split = data or path / "data"
-        ids = sorted(int(p.name) for p in (path / "robots").iterdir() if p.is_dir() and p.name.isdigit())
-        if not ids:
-            raise DataError(f"{path / 'robots'}: no robot run folders (robots/<id>/) yet")
-        return {i: RobotSource(i, path / "robots" / str(i), _data_for(split, i)) for i in ids}
-    need = "give --data: the split folder (with robot<i>/ inside) or the robot's own folder, as given to `up --data`"
-    if _is_run_folder(path):
-        robot_id = _own_id(path, data)
-        if data is None:
-            raise DataError(f"{path} is robot {robot_id}'s run folder, which does not say where its images are: {need}")
-        return {robot_id: RobotSource(robot_id, path, _data_for(data, robot_id))}
-    runs = {int(p.name[5:]): p for p in path.iterdir()
-            if p.is_dir() and p.name.startswith("robot") and p.name[5:].isdigit() and _is_run_folder(p)}
-    if not runs:
-        raise DataError(f"{path}: not a run folder (no checkpoint or telemetry, no robots/<id>/ or robot<id>/ inside)")
-    if data is None:
-        raise DataError(f"{path} holds hand-run robots {sorted(runs)}, whose run folders do not say where their "
-                        f"images are: {need}")
-    return {i: RobotSource(i, runs[i], _data_for(data, i)) for i in sorted(runs)}
+__all__ = ["RobotModel", "RobotStatus"]
 
 
 def _stamp(path: Path) -> tuple[int, int] | None:
@@ -108,7 +35,7 @@ def _stamp(path: Path) -> tuple[int, int] | None:
 class RobotModel:
     """A robot's newest model, reloaded when its checkpoint changes (it trains while we look)."""
 
-    source: RobotSource
+    source: RobotRun
     trainer: RobotTrainer | None = None  # None until the first checkpoint loads
     round: int | None = None  # the checkpoint's round
     error: str | None = None  # why the newest checkpoint could not be loaded (the old model stays)
@@ -151,7 +78,7 @@ class RobotStatus:
     done: bool
 
     @classmethod
-    def read(cls, source: RobotSource) -> "RobotStatus":
+    def read(cls, source: RobotRun) -> "RobotStatus":
         folder = source.folder
         records: list[RoundRecord] = read_telemetry(folder.telemetry)
         events = read_events(folder.events)

@@ -123,7 +123,7 @@ def test_render_an_orbit_as_pngs_and_mp4_and_given_cameras_as_gif(run, tmp_path)
     assert gif.shape[0] == 4 == len(list((held / "rgb").glob("*.png")))
     # the frame of the split is "world", so the held-out cameras are in the shared frame: the render
     # is the field's view of the held-out image
-    from agent.outputs.runs import open_run
+    from agent.runs import open_run
     from agent.data.loaders import load_views
 
     trainer = open_run(run).load(2)
@@ -135,7 +135,7 @@ def test_render_an_orbit_as_pngs_and_mp4_and_given_cameras_as_gif(run, tmp_path)
 
 def test_eval_matches_agent_evaluation(run, tmp_path):
     from agent.evaluation import EvalSet, evaluate_robot
-    from agent.outputs.runs import open_run
+    from agent.runs import open_run
 
     out = ok(agent("eval", str(run), "--json", str(tmp_path / "scores.json"), "--threads", "1"))
     assert "PSNR all" in out and "view_006" in out
@@ -226,7 +226,7 @@ def test_export_cameras_geometry_and_weights(run, tmp_path):
 
     from agent.data.loaders import load_views
     from agent.geometry import transform_points
-    from agent.outputs.runs import open_run
+    from agent.runs import open_run
 
     out = tmp_path / "export"
     said = ok(agent("export", str(run), "--out", str(out), "--resolution", "48", "--density", "3", "--threads", "1"))
@@ -289,6 +289,10 @@ def test_bad_input_is_one_line(run, tmp_path):
     assert "no robot 7" in fails("export", str(run), "--out", str(tmp_path / "x"), "--robot", "7")
     assert "--device" in fails("render", str(run), "--device", "no-such-device", "--orbit", "2")
     assert "not both" in fails("render", str(run), "--orbit", "2", "--cameras", str(run / "data" / "eval"))
+    starting = tmp_path / "starting" / "robot1"  # a swarm run by hand that is still starting: no checkpoint yet
+    starting.mkdir(parents=True)
+    shutil.copy(run / "robots" / "1" / "data.json", starting)
+    assert "has a checkpoint.safetensors yet" in fails("eval", str(starting.parent))
     old = tmp_path / "old"  # a run dir of a dinerf that did not record its data folder
     shutil.copytree(run / "robots" / "1", old)
     (old / "data.json").unlink()

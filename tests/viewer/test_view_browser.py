@@ -1,8 +1,8 @@
 """`dinerf-agent view` end to end: a real swarm trains, the viewer follows it, headless Chromium looks.
 
 Two robots train for real (`up` processes over Zenoh, a tiny procedural scene). The viewer starts
-once robot 1 has its first checkpoint, so it must reload the newer ones and re-read telemetry
-while the swarm trains. Chromium (the Debian package, driven by playwright; no browser is
+once robot 1 has its first checkpoint, with no --data (the run dirs record their data folders), so
+it must reload the newer ones and re-read telemetry while the swarm trains. Chromium (the Debian package, driven by playwright; no browser is
 downloaded) then loads the page: the screenshot must show the field (the centre of the picture
 is not the plain background, and its colours vary) and both robots' cameras (pixels in their
 colours), and the panel must give each robot's final round and PSNR. A drag turns the camera
@@ -43,9 +43,9 @@ def tiny_swarm(root: Path):
         daemon={"startup_wait_s": 10.0})
 
 
-def _start_viewer(run: Path, data: Path, log: Path) -> tuple[subprocess.Popen, int]:
+def _start_viewer(run: Path, log: Path) -> tuple[subprocess.Popen, int]:
     env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")
-    cmd = [sys.executable, "-m", "cli", "view", str(run), "--data", str(data), "--port", "0", "--poll", "0.5",
+    cmd = [sys.executable, "-m", "cli", "view", str(run), "--port", "0", "--poll", "0.5",
            "--width", "128", "--moving-width", "48"]
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=open(log, "w"), stderr=subprocess.STDOUT)
     t0 = time.monotonic()
@@ -83,7 +83,7 @@ def test_viewer_shows_the_field_the_cameras_and_each_robots_round_and_psnr(tmp_p
     try:
         swarm.start_all()
         swarm.wait_round(1, 1)
-        viewer, port = _start_viewer(swarm.root / "run", swarm.root, tmp_path / "view.log")
+        viewer, port = _start_viewer(swarm.root / "run", tmp_path / "view.log")  # no --data: data.json
         swarm.wait_all(timeout=120)
         print(f"trained in {time.monotonic() - t_start:.1f} s")
         psnr = {i: swarm.telemetry(i)[-1].psnr for i in swarm.robots}

@@ -16,13 +16,13 @@ from typer.testing import CliRunner
 import cli.main
 from agent.data.loaders import load_views
 from agent.data.split import estimate_scene_box
-from agent.data.views import DataError
 from agent.geometry import box_from_center, sim3_from_params, transform_c2w
 from agent.swarm import SwarmTrainingConfig, build_robot
 from agent.telemetry import RoundRecord
 from agent.viewer.scene import (PALETTE, RenderScheduler, c2w_from_browser, colour_of, frustums, home_view,
                                 panel_markdown, render_at_camera)
-from agent.viewer.source import RobotSource, RobotStatus, find_robots
+from agent.runs import RobotRun
+from agent.viewer.source import RobotStatus
 
 cli.main._register()
 
@@ -33,34 +33,12 @@ def _telemetry(run_dir: Path, robot: int, rounds: int, **fields) -> None:
     (run_dir / "telemetry.jsonl").write_text("\n".join(lines) + "\n")
 
 
-def test_the_three_run_folder_layouts_and_where_their_images_are(tmp_path):
-    scenario = tmp_path / "scenario"
-    for i in (1, 2):
-        (scenario / "robots" / str(i)).mkdir(parents=True)
-        (scenario / "data" / f"robot{i}").mkdir(parents=True)
-    found = find_robots(scenario)
-    assert found == {i: RobotSource(i, scenario / "robots" / str(i), scenario / "data" / f"robot{i}") for i in (1, 2)}
-
-    by_hand = tmp_path / "runs" / "demo"
-    _telemetry(by_hand / "robot3", 3, 1)
-    _telemetry(by_hand / "robot5", 5, 1)
-    with pytest.raises(DataError, match=r"hand-run robots \[3, 5\].*give --data"):
-        find_robots(by_hand)
-    split = tmp_path / "split"
-    (split / "robot3").mkdir(parents=True)
-    (split / "robot5").mkdir(parents=True)
-    assert {i: s.data_dir for i, s in find_robots(by_hand, split).items()} == {3: split / "robot3", 5: split / "robot5"}
-
-    # one --run-dir: its robot id from its telemetry; --data may be the robot's own folder
-    own = tmp_path / "mine"
-    own.mkdir()
-    with pytest.raises(DataError, match="robot 5's run folder.*give --data"):
-        find_robots(by_hand / "robot5")
-    assert find_robots(by_hand / "robot5", own) == {5: RobotSource(5, by_hand / "robot5", own)}
-    with pytest.raises(DataError, match="not a run folder"):
-        find_robots(own)
-    with pytest.raises(DataError, match="no such folder"):
-        find_robots(tmp_path / "absent")
+def test_view_without_data_on_a_hand_run_swarm_that_does_not_record_it_is_one_line(tmp_path):
+    _telemetry(tmp_path / "swarm1" / "robot3", 3, 1)  # an older dinerf's run dir: no data.json
+    res = CliRunner().invoke(cli.main.app, ["view", str(tmp_path / "swarm1")])
+    lines = res.stderr.strip().splitlines()
+    assert res.exit_code == 2 and len(lines) == 1 and "does not record its data folder" in lines[0], res.stderr
+    assert "pass --data" in lines[0]
 
 
 def test_status_reads_round_newest_psnr_and_frame(tmp_path):
@@ -69,12 +47,12 @@ def test_status_reads_round_newest_psnr_and_frame(tmp_path):
     with open(run / "telemetry.jsonl", "a") as f:  # a PSNR at round 4, none at round 5, and a line cut by SIGKILL
         f.write(RoundRecord(robot=2, round=4, psnr=21.5, alignment="unaligned").to_json() + "\n")
         f.write(RoundRecord(robot=2, round=5, alignment="coarse").to_json() + "\n{\"robot\": 2, \"rou")
-    status = RobotStatus.read(RobotSource(2, run, tmp_path))
+    status = RobotStatus.read(RobotRun(2, run, tmp_path))
     assert (status.round, status.psnr, status.psnr_round, status.frame, status.done) == (5, 21.5, 4, "coarse", False)
     text = panel_markdown([status], 2, 5, {2: PALETTE[0]}, {2: "checkpoint.safetensors: damaged"})
     assert "| 5 | 21.50 (round 4) | coarse |" in text and "damaged" in text and "round 5" in text
     _telemetry(tmp_path / "robot7", 7, 2, alignment="unaligned")
-    assert RobotStatus.read(RobotSource(7, tmp_path / "robot7", tmp_path)).frame == "unaligned (out of consensus)"
+    assert RobotStatus.read(RobotRun(7, tmp_path / "robot7", tmp_path)).frame == "unaligned (out of consensus)"
 
 
 @pytest.fixture(scope="module")
