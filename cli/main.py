@@ -21,6 +21,7 @@ COMMAND_MODULES = [
     "cli.cmd_up",
     "cli.cmd_status",
     "cli.cmd_scenario",
+    "cli.cmd_cert",
 ]
 
 

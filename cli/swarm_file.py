@@ -103,6 +103,8 @@ class SwarmFile:
         if connect or neighbours:
             base["connect"] = list(connect) if connect else neighbours
         if not self.security.insecure:
+            if robot_name(robot_id) in self.security.revoked:
+                raise ConfigError(f"security.revoked: robot {robot_id} is revoked in this swarm file")
             if data_dir is None:
                 raise ConfigError("a secure swarm needs the robot's data folder (its tls/ certificates)")
             base.update(self._tls(Path(data_dir) / self.security.tls_dir, robot_name(robot_id)))
