@@ -1,20 +1,30 @@
 """Mutual TLS + access control against plain TCP: the same real swarm (`dinerf-agent up` robots on
 loopback, tests/system/harness.py), run alternately insecure and secure, in one benchmark run.
 
-    nice .venv/bin/python benchmarks/bench_tls.py [--robots 3] [--rounds 8] [--repeats 2] [--log2-hashmap 14]
+    nice .venv/bin/python benchmarks/bench_tls.py [--robots 3] [--rounds 8] [--repeats 2] [--log2-hashmap 14] \
+        [--puts 4 16 64]
 
 Per mode, over every robot's rounds after the first (the first includes start-up): the round
 time (between consecutive telemetry lines), the time waiting at the barrier, the duration of the
 snapshot puts, and the snapshot bytes received per link per round. Runs alternate (tcp, tls,
 tcp, tls ...) so that a change of machine load hits both modes alike.
+
+``--puts``: also the raw transport, without training: puts of random payloads of these sizes
+(MB) to a subscriber in another process, over plain TCP and over mutual TLS with access control,
+alternately; latency from just before ``publish`` to the subscriber's callback (one monotonic
+clock), median of ``--repeats`` x 3.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import statistics
+import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -50,13 +60,102 @@ def run_once(tmp: Path, secure: bool, robots: int, rounds: int, log2_hashmap: in
     return out
 
 
+def _transport(pki_dir: str | None, robot: int, listen: list[str], connect: list[str]):
+    from protocol.acl import access_control
+    from protocol.keys import Keys
+    from protocol.transport import TransportConfig, ZenohTransport
+
+    keys = Keys("bench")
+    if pki_dir is None:
+        return ZenohTransport(TransportConfig(listen=listen, connect=connect), keys, robot)
+    d = Path(pki_dir) / f"robot{robot}" / "tls"
+    cfg = TransportConfig(listen=[e.replace("tcp/", "tls/") for e in listen], connect=[e.replace("tcp/", "tls/") for e in connect],
+                          tls_root_ca=str(d / "ca.pem"), tls_cert=str(d / "cert.pem"), tls_key=str(d / "key.pem"),
+                          tls_verify_name_on_connect=False, access_control=access_control(keys, [0, 1]))
+    return ZenohTransport(cfg, keys, robot)
+
+
+def receiver(port: int, pki_dir: str | None) -> None:
+    """Robot 1: print the arrival time of every snapshot of robot 0."""
+    with _transport(pki_dir, 1, [f"tcp/127.0.0.1:{port}"], []) as net:
+        net.subscribe(net.keys.theta_of(0), lambda key, data: print(json.dumps({"bytes": len(data), "t": time.monotonic()}),
+                                                                    flush=True))
+        net.declare_alive()
+        print(json.dumps({"ready": True}), flush=True)
+        sys.stdin.read()
+    os._exit(0)
+
+
+def bench_puts(sizes_mb: list[int], repeats: int, pki_dir: str, mode: str) -> dict[int, list[float]]:
+    import socket
+
+    import numpy as np
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    tls = ["--pki", pki_dir] if mode == "tls" else []
+    child = subprocess.Popen([sys.executable, __file__, "--role", "receiver", "--port", str(port), *tls],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    out: dict[int, list[float]] = {}
+    try:
+        assert json.loads(child.stdout.readline()).get("ready")
+        with _transport(pki_dir if mode == "tls" else None, 0, [], [f"tcp/127.0.0.1:{port}"]) as net:
+            present = threading.Event()
+            net.watch_alive(lambda ids: present.set() if 1 in ids else None)
+            if not present.wait(20):
+                raise SystemExit(f"{mode}: the receiver never appeared")
+            rng, k = np.random.default_rng(0), 0
+            for size in sizes_mb:
+                payload = rng.bytes(size * 1024 * 1024)
+                for _ in range(repeats):
+                    t0 = time.monotonic()
+                    net.publish(net.keys.theta(0, k, to=1), payload)
+                    line = json.loads(child.stdout.readline())
+                    assert line["bytes"] == len(payload)
+                    out.setdefault(size, []).append(line["t"] - t0)
+                    k += 1
+    finally:
+        child.stdin.close()
+        child.wait(timeout=10)
+    return out
+
+
+def report_puts(sizes_mb: list[int], repeats: int) -> None:
+    from protocol.pki import create_swarm_pki
+
+    latency: dict[str, dict[int, list[float]]] = {"tcp": {}, "tls": {}}
+    with tempfile.TemporaryDirectory() as d:
+        create_swarm_pki(Path(d), "bench", [0, 1])
+        for _ in range(3):
+            for mode in ("tcp", "tls"):
+                for size, v in bench_puts(sizes_mb, repeats, d, mode).items():
+                    latency[mode].setdefault(size, []).extend(v)
+    print("\nput to another process on loopback, latency to the subscriber's callback (median)")
+    print(f"{'size':>6} {'tcp s':>8} {'tls s':>8} {'tcp MB/s':>9} {'tls MB/s':>9} {'tls/tcp':>8}")
+    for size in sizes_mb:
+        a, b = (statistics.median(latency[m][size]) for m in ("tcp", "tls"))
+        print(f"{size:>4}MB {a:8.3f} {b:8.3f} {size / a:9.0f} {size / b:9.0f} {b / a:8.3f}")
+
+
 def main() -> None:
     p = argparse.ArgumentParser()
     p.add_argument("--robots", type=int, default=3)
     p.add_argument("--rounds", type=int, default=8)
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--log2-hashmap", type=int, default=14, help="hash table size of the model (bytes per snapshot)")
+    p.add_argument("--puts", type=int, nargs="*", default=[], help="also raw puts of these sizes (MB)")
+    p.add_argument("--role", default="bench", choices=["bench", "receiver"], help=argparse.SUPPRESS)
+    p.add_argument("--port", type=int, default=0, help=argparse.SUPPRESS)
+    p.add_argument("--pki", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
+    if args.role == "receiver":
+        receiver(args.port, args.pki)
+        return
+    if args.puts:
+        report_puts(args.puts, args.repeats)
+    if args.rounds <= 0:
+        return
     figures: dict[str, dict[str, list[float]]] = {"tcp": {}, "tls": {}}
     with tempfile.TemporaryDirectory() as d:
         for r in range(args.repeats):

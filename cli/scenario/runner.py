@@ -94,7 +94,8 @@ def prepare_split(spec: ScenarioSpec, out: Path) -> dict:
     views, result = split_dataset(spec.resolved_dataset(), spec.split, spec.width)
     write_split(result, out, overwrite=True)
     if not spec.security.insecure:  # robot<i>/tls/ and monitor/ in the split, the CA beside it
-        create_swarm_pki(out, spec.name, spec.ids, ca_dir=Path(out).parent / "ca")
+        create_swarm_pki(out, spec.name, spec.ids, ca_dir=Path(out).parent / "ca",
+                         robot_dirs={i: Path(out) / f"robot{i}" / spec.security.tls_dir for i in spec.ids})
     return {
         "views": len(views),
         "resolution": [result.eval_views.width, result.eval_views.height],
