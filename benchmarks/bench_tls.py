@@ -7,12 +7,16 @@ loopback, tests/system/harness.py), run alternately insecure and secure, in one 
 Per mode, over every robot's rounds after the first (the first includes start-up): the round
 time (between consecutive telemetry lines), the time waiting at the barrier, the duration of the
 snapshot puts, and the snapshot bytes received per link per round. Runs alternate (tcp, tls,
-tcp, tls ...) so that a change of machine load hits both modes alike.
+tls, tcp, tcp, tls ...) so that a change of machine load, or going first, hits both modes alike.
 
 ``--puts``: also the raw transport, without training: puts of random payloads of these sizes
 (MB) to a subscriber in another process, over plain TCP and over mutual TLS with access control,
 alternately; latency from just before ``publish`` to the subscriber's callback (one monotonic
 clock), median of ``--repeats`` x 3.
+
+Zenoh's shared memory is off in both modes (``--shm`` leaves it on): between processes of one
+host it carries large payloads past the link, TCP or TLS, and robots on separate machines share
+no memory.
 """
 
 from __future__ import annotations
@@ -34,9 +38,13 @@ sys.path.insert(0, str(ROOT))
 from tests.system.harness import make_swarm  # noqa: E402
 
 
-def run_once(tmp: Path, secure: bool, robots: int, rounds: int, log2_hashmap: int) -> dict[str, list[float]]:
+NO_SHM = {"transport/shared_memory/enabled": "false"}
+
+
+def run_once(tmp: Path, secure: bool, robots: int, rounds: int, log2_hashmap: int, shm: bool) -> dict[str, list[float]]:
     training = {"rounds": rounds, "train": {"field": {"grid": {"log2_hashmap_size": log2_hashmap}}}}
-    swarm = make_swarm(tmp, robots=robots, topology="full", training=training, secure=secure)
+    swarm = make_swarm(tmp, robots=robots, topology="full", training=training, secure=secure,
+                       network={} if shm else {"extra": NO_SHM})
     t0 = time.monotonic()
     try:
         swarm.start_all()
@@ -60,24 +68,25 @@ def run_once(tmp: Path, secure: bool, robots: int, rounds: int, log2_hashmap: in
     return out
 
 
-def _transport(pki_dir: str | None, robot: int, listen: list[str], connect: list[str]):
+def _transport(pki_dir: str | None, robot: int, listen: list[str], connect: list[str], shm: bool):
     from protocol.acl import access_control
     from protocol.keys import Keys
     from protocol.transport import TransportConfig, ZenohTransport
 
     keys = Keys("bench")
+    extra = {} if shm else dict(NO_SHM)
     if pki_dir is None:
-        return ZenohTransport(TransportConfig(listen=listen, connect=connect), keys, robot)
+        return ZenohTransport(TransportConfig(listen=listen, connect=connect, extra=extra), keys, robot)
     d = Path(pki_dir) / f"robot{robot}" / "tls"
     cfg = TransportConfig(listen=[e.replace("tcp/", "tls/") for e in listen], connect=[e.replace("tcp/", "tls/") for e in connect],
                           tls_root_ca=str(d / "ca.pem"), tls_cert=str(d / "cert.pem"), tls_key=str(d / "key.pem"),
-                          tls_verify_name_on_connect=False, access_control=access_control(keys, [0, 1]))
+                          tls_verify_name_on_connect=False, access_control=access_control(keys, [0, 1]), extra=extra)
     return ZenohTransport(cfg, keys, robot)
 
 
-def receiver(port: int, pki_dir: str | None) -> None:
+def receiver(port: int, pki_dir: str | None, shm: bool) -> None:
     """Robot 1: print the arrival time of every snapshot of robot 0."""
-    with _transport(pki_dir, 1, [f"tcp/127.0.0.1:{port}"], []) as net:
+    with _transport(pki_dir, 1, [f"tcp/127.0.0.1:{port}"], [], shm) as net:
         net.subscribe(net.keys.theta_of(0), lambda key, data: print(json.dumps({"bytes": len(data), "t": time.monotonic()}),
                                                                     flush=True))
         net.declare_alive()
@@ -86,7 +95,7 @@ def receiver(port: int, pki_dir: str | None) -> None:
     os._exit(0)
 
 
-def bench_puts(sizes_mb: list[int], repeats: int, pki_dir: str, mode: str) -> dict[int, list[float]]:
+def bench_puts(sizes_mb: list[int], repeats: int, pki_dir: str, mode: str, shm: bool) -> dict[int, list[float]]:
     import socket
 
     import numpy as np
@@ -94,13 +103,13 @@ def bench_puts(sizes_mb: list[int], repeats: int, pki_dir: str, mode: str) -> di
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
-    tls = ["--pki", pki_dir] if mode == "tls" else []
+    tls = (["--pki", pki_dir] if mode == "tls" else []) + (["--shm"] if shm else [])
     child = subprocess.Popen([sys.executable, __file__, "--role", "receiver", "--port", str(port), *tls],
                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     out: dict[int, list[float]] = {}
     try:
         assert json.loads(child.stdout.readline()).get("ready")
-        with _transport(pki_dir if mode == "tls" else None, 0, [], [f"tcp/127.0.0.1:{port}"]) as net:
+        with _transport(pki_dir if mode == "tls" else None, 0, [], [f"tcp/127.0.0.1:{port}"], shm) as net:
             present = threading.Event()
             net.watch_alive(lambda ids: present.set() if 1 in ids else None)
             if not present.wait(20):
@@ -121,7 +130,7 @@ def bench_puts(sizes_mb: list[int], repeats: int, pki_dir: str, mode: str) -> di
     return out
 
 
-def report_puts(sizes_mb: list[int], repeats: int) -> None:
+def report_puts(sizes_mb: list[int], repeats: int, shm: bool) -> None:
     from protocol.pki import create_swarm_pki
 
     latency: dict[str, dict[int, list[float]]] = {"tcp": {}, "tls": {}}
@@ -129,9 +138,10 @@ def report_puts(sizes_mb: list[int], repeats: int) -> None:
         create_swarm_pki(Path(d), "bench", [0, 1])
         for _ in range(3):
             for mode in ("tcp", "tls"):
-                for size, v in bench_puts(sizes_mb, repeats, d, mode).items():
+                for size, v in bench_puts(sizes_mb, repeats, d, mode, shm).items():
                     latency[mode].setdefault(size, []).extend(v)
-    print("\nput to another process on loopback, latency to the subscriber's callback (median)")
+    print(f"\nput to another process on loopback, latency to the subscriber's callback (median); shared memory "
+          f"{'on' if shm else 'off'}")
     print(f"{'size':>6} {'tcp s':>8} {'tls s':>8} {'tcp MB/s':>9} {'tls MB/s':>9} {'tls/tcp':>8}")
     for size in sizes_mb:
         a, b = (statistics.median(latency[m][size]) for m in ("tcp", "tls"))
@@ -145,28 +155,30 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--log2-hashmap", type=int, default=14, help="hash table size of the model (bytes per snapshot)")
     p.add_argument("--puts", type=int, nargs="*", default=[], help="also raw puts of these sizes (MB)")
+    p.add_argument("--shm", action="store_true", help="leave Zenoh's shared memory on (one host only)")
     p.add_argument("--role", default="bench", choices=["bench", "receiver"], help=argparse.SUPPRESS)
     p.add_argument("--port", type=int, default=0, help=argparse.SUPPRESS)
     p.add_argument("--pki", default=None, help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.role == "receiver":
-        receiver(args.port, args.pki)
+        receiver(args.port, args.pki, args.shm)
         return
     if args.puts:
-        report_puts(args.puts, args.repeats)
+        report_puts(args.puts, args.repeats, args.shm)
     if args.rounds <= 0:
         return
     figures: dict[str, dict[str, list[float]]] = {"tcp": {}, "tls": {}}
     with tempfile.TemporaryDirectory() as d:
         for r in range(args.repeats):
-            for mode in ("tcp", "tls"):
-                got = run_once(Path(d) / f"{mode}{r}", mode == "tls", args.robots, args.rounds, args.log2_hashmap)
+            for mode in (("tcp", "tls") if r % 2 == 0 else ("tls", "tcp")):  # each mode first as often
+                got = run_once(Path(d) / f"{mode}{r}", mode == "tls", args.robots, args.rounds, args.log2_hashmap,
+                               args.shm)
                 for k, v in got.items():
                     figures[mode].setdefault(k, []).extend(v)
                 print(f"run {r + 1}/{args.repeats} {mode}: wall {got['wall_s'][0]:.1f} s, median round "
                       f"{statistics.median(got['round_s']):.3f} s", flush=True)
     print(f"\n{args.robots} robots, full topology, {args.rounds} rounds x {args.repeats} runs per mode, "
-          f"log2 hash table {args.log2_hashmap}")
+          f"log2 hash table {args.log2_hashmap}, shared memory {'on' if args.shm else 'off'}")
     print(f"{'':6} {'round s (median)':>17} {'round s (mean)':>15} {'wait s':>8} {'put ms':>8} {'KB/link/round':>14}")
     for mode, f in figures.items():
         print(f"{mode:6} {statistics.median(f['round_s']):17.3f} {statistics.fmean(f['round_s']):15.3f} "

@@ -142,7 +142,7 @@ class Swarm:
 
 def make_swarm(tmp: Path, robots: int = 3, topology: str = "full", frame: str = "world",
                training: dict | None = None, daemon: dict | None = None, views: int = 36, width: int = 24,
-               overlap: float = 0.2, seed: int = 1, secure: bool = False) -> Swarm:
+               overlap: float = 0.2, seed: int = 1, secure: bool = False, network: dict | None = None) -> Swarm:
     """Split a tiny procedural scene into robot folders and write the swarm.toml for them.
 
     ``secure``: a swarm CA, certificates, tls/ endpoints and access control, as `split` makes
@@ -163,7 +163,8 @@ def make_swarm(tmp: Path, robots: int = 3, topology: str = "full", frame: str = 
     if secure:
         create_swarm_pki(root, name, ids)
     sec = security_sections(insecure=not secure)
-    network = {**sec["network"], "endpoints": loopback_endpoints(ids, free_port_base(max(ids)), tls=secure)}
+    network = {**sec["network"], **(network or {}),
+               "endpoints": loopback_endpoints(ids, free_port_base(max(ids)), tls=secure)}
     write_swarm_file(root / "swarm.toml", swarm_doc(
         name, ids, frames_of_split(frame, False), topology, network=network, security=sec["security"],
         training=merge(TINY_TRAINING, training or {}), daemon=merge(daemon_cfg, daemon or {})))
