@@ -8,7 +8,8 @@ connects to its neighbours' addresses there (``--listen``/``--connect``), so the
 the command lines match the static addresses.
 
 Links are mutual TLS (``tls/``) with the certificates ``--data`` writes into each robot folder
-(``tls/``; the CA stays in ``./ca``), unless the scenario says ``[security] insecure = true``.
+(``tls/``; the CA stays in ``./data/ca``, which no service mounts), unless the scenario says
+``[security] insecure = true``.
 Mounts per service: its own robot folder read-only at ``/data/robot``, the swarm TOML and
 ``scene.json`` read-only in ``/swarm``, and its run dir ``./runs/robot<id>`` at ``/run/robot``.
 The image is built from the repository's ``Dockerfile`` (CPU torch).

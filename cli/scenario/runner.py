@@ -81,8 +81,8 @@ def free_ports(count: int) -> list[int]:
 def prepare_split(spec: ScenarioSpec, out: Path) -> dict:
     """Write the robot folders with ``agent.data.split`` (no shelling out); returns a summary.
 
-    Unless the scenario is insecure, also the swarm's certificates: ``<out>/robot<i>/tls/``,
-    ``<out>/monitor/`` and the CA in ``<out>/../ca/`` (out of every robot folder).
+    Unless the scenario is insecure, also the swarm's certificates, as `split` writes them:
+    ``<out>/robot<i>/tls/``, ``<out>/monitor/`` and the CA in ``<out>/ca/`` (in no robot folder).
 
     With ``split.robot_image_width`` the robots get images that wide and only the held-out views
     are at the scenario's width, the resolution of the evaluation and of the centralised baseline
@@ -93,8 +93,8 @@ def prepare_split(spec: ScenarioSpec, out: Path) -> dict:
 
     views, result = split_dataset(spec.resolved_dataset(), spec.split, spec.width)
     write_split(result, out, overwrite=True)
-    if not spec.security.insecure:  # robot<i>/tls/ and monitor/ in the split, the CA beside it
-        create_swarm_pki(out, spec.name, spec.ids, ca_dir=Path(out).parent / "ca",
+    if not spec.security.insecure:  # robot<i>/tls/, monitor/ and ca/ in the split
+        create_swarm_pki(out, spec.name, spec.ids,
                          robot_dirs={i: Path(out) / f"robot{i}" / spec.security.tls_dir for i in spec.ids})
     return {
         "views": len(views),

@@ -111,7 +111,8 @@ def test_written_files_parse_back(tmp_path):
     for i in spec.ids:  # what the volumes mount exists, certificates included (the CA's key beside, not inside)
         assert (path.parent / f"data/robot{i}/transforms.json").is_file()
         assert {p.name for p in (path.parent / f"data/robot{i}/tls").iterdir()} == {"ca.pem", "cert.pem", "key.pem"}
-    assert (path.parent / "ca/ca.key").is_file() and not list(path.parent.glob("data/**/ca.key"))
+    assert (path.parent / "data/ca/ca.key").is_file() and not list(path.parent.glob("data/robot*/**/ca.key"))
+    assert not any("/ca" in v for s in doc["services"].values() for v in s["volumes"])  # no service mounts the CA
     assert swarm["security"]["monitor_dir"] == "data/monitor" and swarm["security"]["insecure"] is False
     assert swarm["network"]["tls_verify_name_on_connect"] is False
     assert (path.parent / "data/scene.json").is_file()
