@@ -42,7 +42,10 @@ def split(
                                    "values, e.g. --set up=[0,0,1] --set offset_rotation_deg=[0,0,90] (repeatable)."),
     force: bool = typer.Option(False, help="Replace a previous split in --out."),
     topology: str = typer.Option("full", help="Topology written to swarm.toml: full | ring | star | line."),
-    port_base: int = typer.Option(7500, help="swarm.toml endpoints: robot i listens on tcp/127.0.0.1:<base+i>."),
+    port_base: int = typer.Option(7500, help="swarm.toml endpoints: robot i listens on tls/127.0.0.1:<base+i>."),
+    insecure: bool = typer.Option(False, "--insecure", help="Plain TCP, no certificates: anyone who reaches a port "
+                                  "can join and speak as any robot. Default: a swarm CA in <out>/ca, a certificate "
+                                  "per robot, mutual TLS and access control."),
     rounds: int = typer.Option(None, help="swarm.toml [training] rounds (default: agent.swarm.SwarmTrainingConfig's)."),
     steps: int = typer.Option(None, help="swarm.toml [training] steps_per_round (default: SwarmTrainingConfig's)."),
 ) -> None:
@@ -68,14 +71,19 @@ def split(
     views, result = split_dataset(data, cfg, width)
     write_split(result, out, overwrite=force)
     from agent.frames import frames_of_split
-    from cli.swarm_file import SWARM_FILE, loopback_endpoints, swarm_doc, write_swarm_file
+    from cli.swarm_file import SWARM_FILE, loopback_endpoints, security_sections, swarm_doc, write_swarm_file
+    from protocol.pki import create_swarm_pki
 
     ids = sorted(result.robots)
     name = "".join(c if c.isalnum() or c in "-_" else "-" for c in Path(out).resolve().name) or "swarm"
     frames = frames_of_split(cfg.frame, cfg.images_only)
     training = {k: v for k, v in (("rounds", rounds), ("steps_per_round", steps)) if v is not None}
-    write_swarm_file(Path(out) / SWARM_FILE, swarm_doc(name, ids, frames, topology, training=training,
-                                                      network={"endpoints": loopback_endpoints(ids, port_base)}),
+    if not insecure:
+        create_swarm_pki(Path(out), name, ids)
+    sec = security_sections(insecure)
+    network = {**sec["network"], "endpoints": loopback_endpoints(ids, port_base, tls=not insecure)}
+    write_swarm_file(Path(out) / SWARM_FILE, swarm_doc(name, ids, frames, topology, network=network, training=training,
+                                                      security=sec["security"]),
                      header="written by `dinerf-agent split`; edit freely (see cli/swarm_file.py)")
     _print_split(result, f"{len(views)} views of {data} -> {out}")
     console = Console()
@@ -86,6 +94,11 @@ def split(
         console.print(f"[yellow]warning:[/yellow] {warning}")
     console.print(f"swarm.toml: {topology} topology, loopback ports {port_base + ids[0]}..{port_base + ids[-1]}; "
                   f"start each robot with: dinerf-agent up --id <id> --data {out}/robot<id>")
+    if insecure:
+        console.print("[bold red]insecure swarm:[/bold red] plain TCP, no certificates (--insecure)")
+    else:
+        console.print(f"mutual TLS: robot<id>/tls/ holds each robot's certificate, monitor/ the one of `status`; "
+                      f"{out}/ca/ holds the swarm CA's key: keep it private, never copy it to a robot")
 
 
 _LAYOUTS = {

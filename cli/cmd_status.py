@@ -79,9 +79,9 @@ def status(
     from protocol import codec
     from protocol.keys import Keys
     from protocol.messages import Rejected
-    from protocol.transport import TransportConfig, TransportError, ZenohTransport
+    from protocol.transport import TransportError, ZenohTransport
 
-    cfg, _ = load_swarm_file(swarm)
+    cfg, base_dir = load_swarm_file(swarm)
     endpoints = list(connect) or [e for i in cfg.swarm.robots if (e := cfg.endpoint(i))]
     if not endpoints and not cfg.network.multicast_scouting:
         raise UserError("no endpoints in the swarm file and none given with --connect")
@@ -98,7 +98,7 @@ def status(
         with lock:
             latest[msg.sender] = (msg, time.monotonic())
 
-    tcfg = TransportConfig(listen=[], connect=endpoints, multicast_scouting=cfg.network.multicast_scouting)
+    tcfg = cfg.monitor_transport(base_dir, endpoints)  # the monitor certificate of a secure swarm
     observer_id = max(cfg.swarm.robots) + 1000  # never declared alive: it only listens
     try:
         net = ZenohTransport(tcfg, keys, observer_id).open()

@@ -61,7 +61,7 @@ def up(
         if cfg.daemon.initial_pose == "coarse" and cfg.daemon.summary_width != cfg.training.image_width:
             full = load_views(data, width=cfg.daemon.summary_width, sfm_cache_dir=run_dir / SFM_CACHE, sfm=cfg.sfm)
             summary_views = full if full.width != views.width else None
-    transport_cfg = cfg.transport_for(robot_id, listen, connect)
+    transport_cfg = cfg.transport_for(robot_id, listen, connect, data_dir=data)
 
     try:
         transport = ZenohTransport(transport_cfg, Keys(cfg.swarm.name), robot_id).open()
@@ -80,6 +80,7 @@ def up(
                         warn=LOGGER.warning)
         for sig in _EXIT_ON:
             signal.signal(sig, stop)
+        (LOGGER.warning if cfg.security.insecure else _log)(_security_line(robot_id, cfg, transport_cfg))
         _log(f"[robot {robot_id}] up: swarm '{cfg.swarm.name}' ({cfg.topology.kind}: "
              f"neighbours {sorted(cfg.graph().neighbours(robot_id))}), {len(views)} views, "
              f"listen {transport_cfg.listen}, connect {transport_cfg.connect}, run dir {run_dir}")
@@ -93,3 +94,13 @@ def up(
         _log(f"[robot {robot_id}] stopped by {signal.Signals(stopped_by[0]).name}: the checkpoint of the last "
              f"completed round is kept in {run_dir}")
         raise typer.Exit(_EXIT_ON[stopped_by[0]])
+
+
+def _security_line(robot_id: int, cfg, transport_cfg) -> str:
+    """How this robot's links are protected, said first: an insecure swarm must not look like a secure one."""
+    if cfg.security.insecure:
+        return (f"[robot {robot_id}] WARNING: INSECURE SWARM ([security] insecure = true): no certificates, no access "
+                "control; anyone who reaches a port can join, read every snapshot and speak as any robot")
+    revoked = f", revoked {cfg.security.revoked}" if cfg.security.revoked else ""
+    return (f"[robot {robot_id}] secure: mutual TLS as robot-{robot_id} ({transport_cfg.tls_cert}), access control: "
+            f"each of robots {cfg.swarm.robots} may say only its own keys{revoked}")

@@ -26,6 +26,7 @@ COMMAND_MODULES = [
     "cli.cmd_config",
     "cli.cmd_health",
     "cli.cmd_view",
+    "cli.cmd_cert",
 ]
 
 

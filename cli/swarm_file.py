@@ -19,6 +19,12 @@
     [daemon]                     # agent.daemon.DaemonConfig (timeouts, threads, wire dtype ...)
     [align]                      # agent.align.AlignConfig (keyframe summaries, matching)
     [sfm]                        # agent.data.sfm.SfmConfig (robots with images only)
+    [security]                   # protocol.pki.SecurityConfig: mutual TLS + access control, or insecure
+
+Unless ``[security] insecure = true``, every endpoint is ``tls/``, each robot presents the
+certificate in ``<its data folder>/tls/`` (CN ``robot-<id>``, checked before the session opens)
+and loads the access control of ``protocol.acl`` built from ``swarm.robots`` minus
+``security.revoked``: robot i may say only its own keys.
 
 A scenario.toml has the same sections (cli.scenario.spec), so one setting has one name.
 """
@@ -37,8 +43,10 @@ from agent.data.sfm import SfmConfig
 from agent.frames import resolve_pose_settings
 from agent.swarm import SwarmTrainingConfig
 from cli.config import ConfigError, apply_overrides, from_dict, load_toml, to_dict
-from protocol.keys import validate_swarm
+from protocol.acl import access_control
+from protocol.keys import Keys, validate_swarm
 from protocol.membership import Topology, TopologyConfig, TopologyError
+from protocol.pki import MONITOR_NAME, PkiError, SecurityConfig, check_identity, robot_name
 from protocol.transport import TransportConfig
 
 SWARM_FILE = "swarm.toml"
@@ -67,6 +75,7 @@ class SwarmFile:
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
     align: AlignConfig = field(default_factory=AlignConfig)
     sfm: SfmConfig = field(default_factory=SfmConfig)
+    security: SecurityConfig = field(default_factory=SecurityConfig)
 
     def graph(self) -> Topology:
         try:
@@ -80,8 +89,10 @@ class SwarmFile:
     def endpoint(self, robot_id: int) -> str | None:
         return self.network.endpoints.get(str(robot_id))
 
-    def transport_for(self, robot_id: int, listen: list[str], connect: list[str]) -> TransportConfig:
-        """The robot's transport: flags win; else listen on its endpoint, connect to its neighbours'."""
+    def transport_for(self, robot_id: int, listen: list[str], connect: list[str],
+                      data_dir: Path | None = None) -> TransportConfig:
+        """The robot's transport: flags win; else listen on its endpoint, connect to its neighbours'.
+        In a secure swarm, with the certificate of ``data_dir``/tls and the swarm's access control."""
         from dataclasses import fields
 
         base = {f.name: getattr(self.network, f.name) for f in fields(TransportConfig)}
@@ -91,7 +102,37 @@ class SwarmFile:
         neighbours = [e for j in sorted(self.graph().neighbours(robot_id)) if (e := self.endpoint(j))]
         if connect or neighbours:
             base["connect"] = list(connect) if connect else neighbours
-        cfg = TransportConfig(**base)
+        if not self.security.insecure:
+            if robot_name(robot_id) in self.security.revoked:
+                raise ConfigError(f"security.revoked: robot {robot_id} is revoked in this swarm file")
+            if data_dir is None:
+                raise ConfigError("a secure swarm needs the robot's data folder (its tls/ certificates)")
+            base.update(self._tls(Path(data_dir) / self.security.tls_dir, robot_name(robot_id)))
+        return self._checked(TransportConfig(**base), base["listen"] + base["connect"])
+
+    def monitor_transport(self, base_dir: Path, connect: list[str]) -> TransportConfig:
+        """What `dinerf-agent status` joins with: listens nowhere, presents the monitor certificate."""
+        base: dict = dict(listen=[], connect=list(connect), multicast_scouting=self.network.multicast_scouting,
+                          lease_ms=self.network.lease_ms, tls_verify_name_on_connect=self.network.tls_verify_name_on_connect)
+        if not self.security.insecure:
+            base.update(self._tls(Path(base_dir) / self.security.monitor_dir, MONITOR_NAME))
+        return self._checked(TransportConfig(**base), base["connect"])
+
+    def _tls(self, tls_dir: Path, name: str) -> dict:
+        try:
+            check_identity(tls_dir, name)
+        except PkiError as e:
+            raise ConfigError(f"security: {e}") from None
+        acl = access_control(Keys(self.swarm.name), self.swarm.robots, self.security.revoked)
+        return dict(tls_root_ca=str(tls_dir / "ca.pem"), tls_cert=str(tls_dir / "cert.pem"),
+                    tls_key=str(tls_dir / "key.pem"), enable_mtls=True, access_control=acl)
+
+    def _checked(self, cfg: TransportConfig, endpoints: list[str]) -> TransportConfig:
+        if not self.security.insecure:
+            plain = [e for e in endpoints if not e.startswith("tls/")]
+            if plain:
+                raise ConfigError(f"network: endpoint {plain[0]!r} is not tls/: a secure swarm authenticates every "
+                                  "link (use tls/host:port, or set [security] insecure = true for plain TCP)")
         try:
             cfg.validate()
         except ValueError as e:
@@ -120,6 +161,12 @@ def _validate(cfg: SwarmFile) -> SwarmFile:
     except ValueError as e:
         raise ConfigError(f"swarm.name: {e}") from None
     cfg.graph()  # validates robots/edges
+    if not cfg.security.insecure:
+        plain = sorted(e for e in cfg.network.endpoints.values() if not e.startswith("tls/"))
+        if plain:
+            raise ConfigError(f"network.endpoints: {plain[0]!r} is plain TCP, but the swarm is secure by default: "
+                              "use tls/ endpoints with the certificates of `dinerf-agent split`, or set "
+                              "[security] insecure = true (anyone who reaches a port can then join)")
     if cfg.swarm.frames is None:
         raise ConfigError(f"swarm.frames: say which frames the robots' poses are in: {FRAMES_HELP}")
     try:
@@ -159,15 +206,24 @@ def write_swarm_file(path: Path, doc: dict, header: str = "") -> Path:
 def swarm_doc(name: str, robots: list[int], frames: str, topology: TopologyConfig | str = "full",
               scene: str = "scene.json", **sections: dict) -> dict:
     """A swarm file's sections as plain data: [swarm], [topology] and any of network, training,
-    daemon, align, sfm (dicts of the settings that differ from the defaults, or everything)."""
+    daemon, align, sfm, security (dicts of the settings that differ from the defaults, or everything)."""
     topo = TopologyConfig(topology) if isinstance(topology, str) else topology
-    unknown = sorted(set(sections) - {"network", "training", "daemon", "align", "sfm"})
+    unknown = sorted(set(sections) - {"network", "training", "daemon", "align", "sfm", "security"})
     if unknown:
         raise ValueError(f"not swarm-file sections: {unknown}")
     return {"swarm": {"name": name, "robots": list(robots), "frames": frames, "scene": scene}, "topology": to_dict(topo),
             **{k: v for k, v in sections.items() if v}}
 
 
-def loopback_endpoints(robots: list[int], port_base: int) -> dict[str, str]:
-    """One TCP port per robot on 127.0.0.1 (local runs: every robot on this machine)."""
-    return {str(i): f"tcp/127.0.0.1:{port_base + i}" for i in robots}
+def loopback_endpoints(robots: list[int], port_base: int, tls: bool = True) -> dict[str, str]:
+    """One port per robot on 127.0.0.1 (local runs: every robot on this machine); tls/ unless insecure."""
+    return {str(i): f"{'tls' if tls else 'tcp'}/127.0.0.1:{port_base + i}" for i in robots}
+
+
+def security_sections(insecure: bool, monitor_dir: str = "monitor") -> dict[str, dict]:
+    """The [security] and [network] settings a generated swarm file gets: mutual TLS with the
+    split's certificates (names are not checked against addresses: the CN is the identity), or
+    plain TCP when asked for explicitly."""
+    if insecure:
+        return {"security": {"insecure": True}, "network": {}}
+    return {"security": {"monitor_dir": monitor_dir}, "network": {"tls_verify_name_on_connect": False}}

@@ -82,8 +82,12 @@ class TransportConfig:
     tls_root_ca: str | None = None
     tls_cert: str | None = None
     tls_key: str | None = None
-    enable_mtls: bool = False
+    #: None: on whenever TLS is used (both ends must present a certificate of the swarm CA)
+    enable_mtls: bool | None = None
     tls_verify_name_on_connect: bool = True
+    #: Zenoh access control (``protocol.acl``: who may say what, by certificate name); needs mTLS.
+    #: Built from the swarm file's roster, not written by hand.
+    access_control: dict[str, Any] | None = None
     #: Raw Zenoh config overrides: key path -> json5 value, applied last (e.g.
     #: {"transport/link/tx/queue/size/data": "4"}).
     extra: dict[str, str] = field(default_factory=dict)
@@ -119,14 +123,29 @@ class TransportConfig:
                 raise ValueError(f"{name}: no such file {path!r}")
         if (self.tls_cert is None) != (self.tls_key is None):
             raise ValueError("tls_cert and tls_key go together")
-        if self.enable_mtls and not (self.tls_root_ca and self.tls_cert and self.tls_key):
-            raise ValueError("enable_mtls needs tls_root_ca, tls_cert and tls_key")
-        uses_tls = any(e.startswith("tls/") for e in self.listen + self.connect)
-        if uses_tls and not self.tls_root_ca:
+        if self.mtls() and not (self.tls_root_ca and self.tls_cert and self.tls_key):
+            raise ValueError("mutual TLS (on whenever TLS is used) needs tls_root_ca, tls_cert and tls_key; "
+                             "set enable_mtls = false explicitly to accept peers without a certificate")
+        if self.uses_tls() and not self.tls_root_ca:
             raise ValueError("tls/ endpoints need tls_root_ca (and tls_cert/tls_key to listen)")
+        if self.access_control is not None:
+            if not isinstance(self.access_control, dict):
+                raise ValueError("access_control must be a table (see protocol.acl)")
+            if not (self.uses_tls() and self.mtls()):
+                raise ValueError("access_control names peers by their certificates: it needs tls/ endpoints "
+                                 "and mutual TLS")
         for k, v in self.extra.items():
             if not isinstance(k, str) or not isinstance(v, str):
                 raise ValueError(f"extra must map config paths to json5 strings, got {k!r}: {v!r}")
+
+    def uses_tls(self) -> bool:
+        return any(e.startswith("tls/") for e in self.listen + self.connect)
+
+    def mtls(self) -> bool:
+        """Mutual TLS: as configured, else on whenever TLS is (endpoints or certificates)."""
+        if self.enable_mtls is not None:
+            return self.enable_mtls
+        return self.uses_tls() or bool(self.tls_root_ca or self.tls_cert)
 
     def block_wait_ms(self) -> int:
         """The BLOCK wait Zenoh gets: the configured one, else half the lease."""
@@ -158,8 +177,10 @@ class TransportConfig:
             s["transport/link/tls/connect_certificate"] = json.dumps(self.tls_cert)
             s["transport/link/tls/connect_private_key"] = json.dumps(self.tls_key)
         if self.tls_root_ca or self.tls_cert:
-            s["transport/link/tls/enable_mtls"] = json.dumps(self.enable_mtls)
+            s["transport/link/tls/enable_mtls"] = json.dumps(self.mtls())
             s["transport/link/tls/verify_name_on_connect"] = json.dumps(self.tls_verify_name_on_connect)
+        if self.access_control is not None:
+            s["access_control"] = json.dumps(self.access_control)
         s.update(self.extra)
         return s
 

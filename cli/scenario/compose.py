@@ -7,6 +7,9 @@ only neighbours can reach each other. A robot listens on its address on each of 
 connects to its neighbours' addresses there (``--listen``/``--connect``), so the endpoints in
 the command lines match the static addresses.
 
+Links are mutual TLS (``tls/``) with the certificates ``--data`` writes into each robot folder
+(``tls/``; the CA stays in ``./data/ca``, which no service mounts), unless the scenario says
+``[security] insecure = true``.
 Mounts per service: its own robot folder read-only at ``/data/robot``, the swarm TOML and
 ``scene.json`` read-only in ``/swarm``, and its run dir ``./runs/robot<id>`` at ``/run/robot``.
 The image is built from the repository's ``Dockerfile`` (CPU torch).
@@ -23,7 +26,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from cli.scenario.runner import prepare_split, swarm_document
+from cli.scenario.runner import link_scheme, prepare_split, swarm_document
 from cli.scenario.spec import ScenarioSpec, repo_root
 from cli.scenario.tomlout import dumps as toml_dumps
 
@@ -56,10 +59,10 @@ def compose_document(spec: ScenarioSpec, compose_dir: Path) -> dict[str, Any]:
         mine = [(key, info) for key, info in addrs.items() if i in key]
         cmd = ["up", "--id", str(i), "--data", "/data/robot", "--swarm", "/swarm/swarm.toml", "--run-dir", "/run/robot"]
         for _, info in mine:
-            cmd += ["--listen", f"tcp/{info[i]}:{PORT}"]
+            cmd += ["--listen", *link_scheme(spec, [f"tcp/{info[i]}:{PORT}"])]
         for (a, b), info in mine:
             other = b if i == a else a
-            cmd += ["--connect", f"tcp/{info[other]}:{PORT}"]
+            cmd += ["--connect", *link_scheme(spec, [f"tcp/{info[other]}:{PORT}"])]
         services[f"robot{i}"] = {
             "build": {"context": context, "dockerfile": "Dockerfile"},
             "image": IMAGE,

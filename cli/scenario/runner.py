@@ -40,7 +40,7 @@ from typing import Callable
 
 from agent.telemetry import RoundRecord
 from cli.config import to_dict
-from cli.swarm_file import swarm_doc
+from cli.swarm_file import security_sections, swarm_doc
 from cli.scenario.spec import ScenarioSpec, spec_to_dict
 from cli.scenario.tomlout import dumps
 
@@ -81,14 +81,21 @@ def free_ports(count: int) -> list[int]:
 def prepare_split(spec: ScenarioSpec, out: Path) -> dict:
     """Write the robot folders with ``agent.data.split`` (no shelling out); returns a summary.
 
+    Unless the scenario is insecure, also the swarm's certificates, as `split` writes them:
+    ``<out>/robot<i>/tls/``, ``<out>/monitor/`` and the CA in ``<out>/ca/`` (in no robot folder).
+
     With ``split.robot_image_width`` the robots get images that wide and only the held-out views
     are at the scenario's width, the resolution of the evaluation and of the centralised baseline
     (``agent.data.split.split_dataset``).
     """
     from agent.data.split import split_dataset, write_split
+    from protocol.pki import create_swarm_pki
 
     views, result = split_dataset(spec.resolved_dataset(), spec.split, spec.width)
     write_split(result, out, overwrite=True)
+    if not spec.security.insecure:  # robot<i>/tls/, monitor/ and ca/ in the split
+        create_swarm_pki(out, spec.name, spec.ids,
+                         robot_dirs={i: Path(out) / f"robot{i}" / spec.security.tls_dir for i in spec.ids})
     return {
         "views": len(views),
         "resolution": [result.eval_views.width, result.eval_views.height],
@@ -100,17 +107,28 @@ def prepare_split(spec: ScenarioSpec, out: Path) -> dict:
     }
 
 
-def swarm_document(spec: ScenarioSpec, scene: str, endpoints: dict[int, str] | None, name: str) -> dict:
+def swarm_document(spec: ScenarioSpec, scene: str, endpoints: dict[int, str] | None, name: str,
+                   monitor_dir: str = "data/monitor") -> dict:
     """The swarm TOML (as a dict) every robot of a scenario gets: the scenario's swarm sections,
-    with per-robot snapshots always on (the report evaluates rounds/<k>.safetensors)."""
-    network = to_dict(spec.network)
+    with per-robot snapshots always on (the report evaluates rounds/<k>.safetensors), and the
+    security of :func:`prepare_split`'s certificates (``monitor_dir``: relative to the swarm file)."""
+    sec = security_sections(spec.security.insecure, monitor_dir)
+    network = {**to_dict(spec.network), **sec["network"]}
     for key in ("listen", "connect"):  # per robot, on its command line
         network.pop(key)
     if endpoints:
         network["endpoints"] = {str(k): v for k, v in endpoints.items()}
+    security = {**to_dict(spec.security), **sec["security"]}
     return swarm_doc(name, spec.ids, spec.frames, spec.topology, scene, network=network, training=to_dict(spec.training),
                      daemon={**to_dict(spec.daemon), "keep_rounds": True}, align=to_dict(spec.align),
-                     sfm=to_dict(spec.sfm))
+                     sfm=to_dict(spec.sfm), security=security)
+
+
+def link_scheme(spec: ScenarioSpec, endpoints: list[str]) -> list[str]:
+    """``endpoints`` over TLS unless the scenario is insecure (the namespaces' lab speaks tcp/)."""
+    if spec.security.insecure:
+        return list(endpoints)
+    return ["tls/" + e.split("/", 1)[1] if e.startswith("tcp/") else e for e in endpoints]
 
 
 @dataclass
@@ -226,12 +244,12 @@ class ScenarioRunner:
             self.lab = NetnsLab(self.spec.ids, self.spec.links, impairable=impairable, impair=self.spec.run.impair,
                                 log_dir=self.out / "logs")
             self.lab.create()
-            self.endpoints = {i: self.lab.endpoints(i) for i in self.spec.ids}
+            self.endpoints = {i: tuple(link_scheme(self.spec, e) for e in self.lab.endpoints(i)) for i in self.spec.ids}
             self.swarm = self._swarm_toml(None)
             self._event("network", namespaces=self.lab.describe())
         else:
             ports = free_ports(len(self.spec.ids))
-            own = {i: f"tcp/127.0.0.1:{p}" for i, p in zip(self.spec.ids, ports)}
+            own = {i: link_scheme(self.spec, [f"tcp/127.0.0.1:{p}"])[0] for i, p in zip(self.spec.ids, ports)}
             topo = self.spec.graph()
             self.endpoints = {i: ([own[i]], [own[j] for j in sorted(topo.neighbours(i))]) for i in self.spec.ids}
             self.swarm = self._swarm_toml(own)

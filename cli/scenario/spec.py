@@ -26,6 +26,8 @@ error that names it. Example (every table but ``[scenario]`` is optional)::
     [network]                                  # protocol.transport.TransportConfig (lease_ms, ...)
     [align]                                    # agent.align.AlignConfig
     [sfm]                                      # agent.data.sfm.SfmConfig
+    [security]                                 # protocol.pki.SecurityConfig: mutual TLS + access
+    # insecure = true                          # control unless this says plain TCP (announced by `up`)
 
     [faults]                                   # rounds count from 0
     kill = [{ robot = 3, round = 2 }]          # SIGKILL robot 3 when the swarm reaches round 2
@@ -61,6 +63,7 @@ from agent.data.split import SplitConfig
 from agent.swarm import SwarmTrainingConfig
 from cli.config import ConfigError, from_dict, load_toml
 from protocol.membership import Topology, TopologyConfig
+from protocol.pki import SecurityConfig
 from protocol.transport import TransportConfig
 
 __all__ = [
@@ -237,6 +240,7 @@ class ScenarioSpec:
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
     align: AlignConfig = field(default_factory=AlignConfig)
     sfm: SfmConfig = field(default_factory=SfmConfig)
+    security: SecurityConfig = field(default_factory=SecurityConfig)
     faults: FaultsSpec = field(default_factory=FaultsSpec)
     baseline: BaselineSpec = field(default_factory=BaselineSpec)
     report: ReportSpec = field(default_factory=ReportSpec)

@@ -19,11 +19,11 @@ ROOT = Path(__file__).resolve().parents[2]
 class Peer:
     """A child process running one role of tests/protocol/peers.py."""
 
-    def __init__(self, role: str, *args: str, timeout: float = 40.0):
+    def __init__(self, role: str, *args: str, timeout: float = 40.0, module: str = "tests.protocol.peers"):
         self.role = role
         self.stderr = tempfile.TemporaryFile(mode="w+")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "tests.protocol.peers", role, "--timeout", str(timeout), *args],
+            [sys.executable, "-m", module, role, "--timeout", str(timeout), *args],
             cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self.stderr, text=True,
         )
         self.events: queue.Queue = queue.Queue()
@@ -74,8 +74,8 @@ class Peer:
 def peers():
     started: list[Peer] = []
 
-    def start(role: str, *args: str, timeout: float = 40.0) -> Peer:
-        p = Peer(role, *args, timeout=timeout)
+    def start(role: str, *args: str, timeout: float = 40.0, module: str = "tests.protocol.peers") -> Peer:
+        p = Peer(role, *args, timeout=timeout, module=module)
         started.append(p)
         return p
 

@@ -18,7 +18,7 @@ def _modules_after(imports: str) -> dict:
 
 def test_pure_modules_import_neither_zenoh_nor_torch():
     loaded = _modules_after("protocol, protocol.keys, protocol.messages, protocol.codec, protocol.rounds, "
-                            "protocol.membership")
+                            "protocol.membership, protocol.pki, protocol.acl")
     assert loaded == {"zenoh": False, "torch": False}
 
 

@@ -55,7 +55,8 @@ def test_tls_settings_and_extra_overrides(tmp_path):
     (dict(block_wait_before_close_ms=2000, lease_ms=2000), "below lease_ms"),
     (dict(tls_root_ca="/nonexistent/ca.pem"), "no such file"),
     (dict(listen=["tls/127.0.0.1:7447"]), "tls_root_ca"),
-    (dict(enable_mtls=True), "enable_mtls needs"),
+    (dict(enable_mtls=True), "mutual TLS .*needs tls_root_ca"),
+    (dict(access_control={"enabled": True}), "needs tls/ endpoints and mutual TLS"),
     (dict(extra={"mode": 3}), "json5 strings"),
 ])
 def test_bad_configs_say_why(kw, match):

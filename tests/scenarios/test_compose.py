@@ -86,11 +86,11 @@ def _check_structure(doc: dict, spec) -> None:
         cmd = services[f"robot{i}"]["command"]
         listen = {cmd[k + 1] for k, x in enumerate(cmd) if x == "--listen"}
         connect = {cmd[k + 1] for k, x in enumerate(cmd) if x == "--connect"}
-        assert listen == {f"tcp/{addr_of[(i, n)]}:7447" for n in services[f"robot{i}"]["networks"]}
+        assert listen == {f"tls/{addr_of[(i, n)]}:7447" for n in services[f"robot{i}"]["networks"]}
         want = set()
         for j in topo.neighbours(i):
             net = f"link-{min(i, j)}-{max(i, j)}"
-            want.add(f"tcp/{addr_of[(j, net)]}:7447")
+            want.add(f"tls/{addr_of[(j, net)]}:7447")
         assert connect == want
 
 
@@ -108,8 +108,13 @@ def test_written_files_parse_back(tmp_path):
     swarm = tomllib.loads((path.parent / "swarm.toml").read_text())
     assert swarm["swarm"]["robots"] == [1, 2, 3, 4, 5] and swarm["topology"]["kind"] == "ring"
     assert swarm["swarm"]["scene"] == "scene.json" and swarm["daemon"]["keep_rounds"] is True
-    for i in spec.ids:  # what the volumes mount exists
+    for i in spec.ids:  # what the volumes mount exists, certificates included (the CA's key beside, not inside)
         assert (path.parent / f"data/robot{i}/transforms.json").is_file()
+        assert {p.name for p in (path.parent / f"data/robot{i}/tls").iterdir()} == {"ca.pem", "cert.pem", "key.pem"}
+    assert (path.parent / "data/ca/ca.key").is_file() and not list(path.parent.glob("data/robot*/**/ca.key"))
+    assert not any("/ca" in v for s in doc["services"].values() for v in s["volumes"])  # no service mounts the CA
+    assert swarm["security"]["monitor_dir"] == "data/monitor" and swarm["security"]["insecure"] is False
+    assert swarm["network"]["tls_verify_name_on_connect"] is False
     assert (path.parent / "data/scene.json").is_file()
     parsed = _parse_yaml(path.read_text())
     if parsed is None:

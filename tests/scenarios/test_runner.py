@@ -102,11 +102,11 @@ def test_cut_link_in_netns_is_seen_by_the_robots(tmp_path):
     after = [k for k in heard if heal["robot_rounds"]["1"] + 1 < k < 8]  # the last probe may find 2 already gone
     assert inside and after
     assert all(heard[k] == [] for k in inside), heard
-    assert all(heard[k] == ["tcp/198.18.0.2:7447"] for k in after), heard
+    assert all(heard[k] == ["tls/198.18.0.2:7447"] for k in after), heard
     assert all(len(heard[k]) == 1 for k in heard if k < cut["robot_rounds"]["1"])
     # robot 3 (not on the cut link) always heard 2 (but in the last round: 2 may have finished)
     recs3 = [json.loads(l) for l in (out / "robots/3/telemetry.jsonl").read_text().splitlines()]
-    assert all(r["heard"] == ["tcp/198.18.0.5:7447"] for r in recs3[:-1]), [r["heard"] for r in recs3]
+    assert all(r["heard"] == ["tls/198.18.0.5:7447"] for r in recs3[:-1]), [r["heard"] for r in recs3]
 
 
 RUN_CHILD = """

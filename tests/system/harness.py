@@ -142,12 +142,16 @@ class Swarm:
 
 def make_swarm(tmp: Path, robots: int = 3, topology: str = "full", frame: str = "world",
                training: dict | None = None, daemon: dict | None = None, views: int = 36, width: int = 24,
-               overlap: float = 0.2, seed: int = 1) -> Swarm:
-    """Split a tiny procedural scene into robot folders and write the swarm.toml for them."""
+               overlap: float = 0.2, seed: int = 1, secure: bool = False, network: dict | None = None) -> Swarm:
+    """Split a tiny procedural scene into robot folders and write the swarm.toml for them.
+
+    ``secure``: a swarm CA, certificates, tls/ endpoints and access control, as `split` makes
+    them; otherwise plain TCP, explicitly insecure (the rogues of these tests must get in)."""
     from agent.data.loaders import load_views
     from agent.data.split import SplitConfig, split_views, write_split
     from agent.frames import frames_of_split
-    from cli.swarm_file import loopback_endpoints, swarm_doc, write_swarm_file
+    from cli.swarm_file import loopback_endpoints, security_sections, swarm_doc, write_swarm_file
+    from protocol.pki import create_swarm_pki
 
     root = tmp / "swarm"
     result = split_views(load_views(f"procedural:views={views},width={width}"),
@@ -156,8 +160,13 @@ def make_swarm(tmp: Path, robots: int = 3, topology: str = "full", frame: str = 
     ids = sorted(result.robots)
     daemon_cfg = {"startup_wait_s": 15.0, "round_timeout_s": 30.0, "linger_s": 1.0, "threads": 1}
     name = f"test-{os.getpid()}-{int(time.time() * 1000) % 10**6}"
+    if secure:
+        create_swarm_pki(root, name, ids)
+    sec = security_sections(insecure=not secure)
+    network = {**sec["network"], **(network or {}),
+               "endpoints": loopback_endpoints(ids, free_port_base(max(ids)), tls=secure)}
     write_swarm_file(root / "swarm.toml", swarm_doc(
-        name, ids, frames_of_split(frame, False), topology, network={"endpoints": loopback_endpoints(ids, free_port_base(max(ids)))},
+        name, ids, frames_of_split(frame, False), topology, network=network, security=sec["security"],
         training=merge(TINY_TRAINING, training or {}), daemon=merge(daemon_cfg, daemon or {})))
     return Swarm(root, ids)
 

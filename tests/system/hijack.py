@@ -1,8 +1,8 @@
 """A rogue that tries to steer a real swarm's rounds with well-formed messages (system tests).
 
-Run as ``python tests/system/hijack.py SWARM_TOML DURATION_S LISTEN``. It listens on LISTEN for
-the robots to connect to it as to a peer (plain TCP: the swarm under test is insecure, so the rogue
-can reach it), prints ``ready``, learns the model layout, and at once:
+Run as ``python tests/system/hijack.py SWARM_TOML DURATION_S LISTEN [CERT_DIR]``. It listens on
+LISTEN for the robots to connect to it as to a peer, prints ``ready``, learns the model layout,
+and at once:
 
 - answers on every robot's ``latest`` queryable with a snapshot of that robot claiming round
   1,000,000, and another claiming the swarm's last round (a robot that joins at the first reply
@@ -12,8 +12,11 @@ can reach it), prints ``ready``, learns the model layout, and at once:
 - re-publishes every real snapshot under its own round with other values (a replay that
   replaces the copy already taken in would change the model).
 
-Forging another robot's *identity* is the transport's to refuse (TLS + access control); this
-rogue attacks the round logic only. Prints one JSON line per second with what it sent.
+Without CERT_DIR the swarm under test is insecure (plain TCP) and the rogue speaks for every
+robot: this attacks the round logic. With CERT_DIR (a robot's ``tls/`` folder: a stolen but valid
+certificate, LISTEN a ``tls/`` endpoint) it speaks only for the *other* robots, which the
+swarm's access control must refuse. Prints one JSON line per second with what it sent (and
+whether any peer is linked to it).
 """
 
 from __future__ import annotations
@@ -35,14 +38,27 @@ from protocol.messages import ThetaSnapshot  # noqa: E402
 FUTURE = (3, 6)  # rounds ahead of a real snapshot its copies claim
 
 
-def main(swarm_toml: str, duration: float, listen: str) -> None:
+def _transport_config(listen: str, cert_dir: str | None):
+    from protocol.transport import TransportConfig
+
+    if cert_dir is None:
+        return TransportConfig(listen=[listen]), None
+    from protocol.pki import describe, robot_id_of
+
+    d = Path(cert_dir)
+    own = robot_id_of(describe(d / "cert.pem").common_name)
+    return TransportConfig(listen=[listen], tls_root_ca=str(d / "ca.pem"), tls_cert=str(d / "cert.pem"),
+                           tls_key=str(d / "key.pem"), tls_verify_name_on_connect=False), own
+
+
+def main(swarm_toml: str, duration: float, listen: str, cert_dir: str | None = None) -> None:
     from agent.daemon import model_spec
     from agent.data.folder import read_scene
     from agent.data.loaders import load_views
     from agent.swarm import build_robot
     from cli.swarm_file import load_swarm_file
     from protocol.keys import Keys
-    from protocol.transport import TransportConfig, ZenohTransport
+    from protocol.transport import ZenohTransport
 
     cfg, base = load_swarm_file(Path(swarm_toml))
     ids = cfg.swarm.robots
@@ -52,8 +68,10 @@ def main(swarm_toml: str, duration: float, listen: str) -> None:
     zeros = {n: np.zeros(t.shape, np.float32) for n, t in setup.trainer.theta().items()}
     keys = Keys(cfg.swarm.name)
     expect = codec.Expectation(cfg.swarm.name, spec=spec)
-    net = ZenohTransport(TransportConfig(listen=[listen]), keys, robot_id=max(ids) + 100).open()
-    sent = {"latest_answers": 0, "future_copies": 0, "replays": 0}
+    tcfg, own = _transport_config(listen, cert_dir)
+    targets = [j for j in ids if j != own]  # with a robot's certificate: speak as the others
+    net = ZenohTransport(tcfg, keys, robot_id=max(ids) + 100).open()
+    sent = {"latest_answers": 0, "future_copies": 0, "replays": 0, "linked": False}
     lock = threading.Lock()
 
     def snapshot(j: int, k: int, tensors: dict) -> bytes:
@@ -70,7 +88,7 @@ def main(swarm_toml: str, duration: float, listen: str) -> None:
                 sent["latest_answers"] += len(forged)
         return on_query
 
-    queryables = [net.session.declare_queryable(keys.latest(j), answer(j)) for j in ids]
+    queryables = [net.session.declare_queryable(keys.latest(j), answer(j)) for j in targets]
 
     seen: set[tuple[int, int, int]] = set()  # (sender, round, to): our own copies come back to us too
 
@@ -79,6 +97,8 @@ def main(swarm_toml: str, duration: float, listen: str) -> None:
             parsed = keys.parse(key)
             msg = codec.decode(data, expect, kind="theta", key=parsed)
         except Exception:
+            return
+        if msg.sender not in targets:
             return
         with lock:
             first = (msg.sender, msg.round, parsed.receiver) not in seen
@@ -106,6 +126,7 @@ def main(swarm_toml: str, duration: float, listen: str) -> None:
     t_end = time.monotonic() + duration
     while time.monotonic() < t_end:
         with lock:
+            sent["linked"] = sent["linked"] or bool(list(net.session.info.peers_zid()))
             print(json.dumps(sent), flush=True)
         time.sleep(1.0)
     for q in queryables:
@@ -114,4 +135,4 @@ def main(swarm_toml: str, duration: float, listen: str) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], float(sys.argv[2]), sys.argv[3])
+    main(sys.argv[1], float(sys.argv[2]), sys.argv[3], sys.argv[4] if len(sys.argv) > 4 else None)

@@ -152,3 +152,30 @@ def test_opencv_and_colmap_add_no_lines_of_their_own_to_the_error(tmp_path):
                              capture_output=True, text=True, timeout=120, env=dict(os.environ, OMP_NUM_THREADS="1"))
         lines = res.stderr.strip().splitlines()
         assert res.returncode == 2 and len(lines) == 1 and expected in lines[0], res.stderr
+
+
+def test_security_mistakes_and_the_cert_command(split, tmp_path):
+    """A robot started with another's certificate folder, a revoked robot, tcp/ in a secure swarm,
+    a CA folder that is not one: one line each. Issue and revoke work, and say what comes next."""
+    import shutil
+
+    _fails_in_one_line(["up", "--id", 2, "--data", split / "robot2", "--listen", "tcp/127.0.0.1:9"], "is not tls/")
+    other = tmp_path / "robot2"
+    shutil.copytree(split / "robot2", other)
+    shutil.rmtree(other / "tls")
+    shutil.copytree(split / "robot1" / "tls", other / "tls")
+    _fails_in_one_line(["up", "--id", 2, "--data", other, "--swarm", split / "swarm.toml"],
+                       "certificate of 'robot-1', not of 'robot-2'")
+    _fails_in_one_line(["cert", "issue", "--ca", split / "robot1" / "tls", "--id", 3, "--out", tmp_path / "t"], "no ca.key")
+    _fails_in_one_line(["cert", "issue", "--ca", split / "ca", "--out", tmp_path / "t"], "either --id")
+    res = runner.invoke(cli.main.app, ["cert", "issue", "--ca", str(split / "ca"), "--id", "3", "--out", str(tmp_path / "r3")])
+    assert res.exit_code == 0 and "issued robot-3" in res.stdout, res.output
+    assert not (tmp_path / "r3" / "ca.key").exists()
+    swarm = tmp_path / "swarm.toml"
+    shutil.copy(split / "swarm.toml", swarm)
+    shutil.copy(split / "scene.json", tmp_path / "scene.json")
+    res = runner.invoke(cli.main.app, ["cert", "revoke", "--swarm", str(swarm), "--id", "2"])
+    assert res.exit_code == 0 and "no revocation list" in res.stdout, res.output
+    _fails_in_one_line(["up", "--id", 2, "--data", split / "robot2", "--swarm", swarm], "robot 2 is revoked")
+    _fails_in_one_line(["cert", "issue", "--ca", split / "ca", "--id", 2, "--out", tmp_path / "r2", "--swarm", swarm],
+                       "robot-2 is revoked")

@@ -58,13 +58,13 @@ def test_a_scenario_embeds_the_swarm_sections_and_hands_them_to_every_robot(tmp_
     (tmp_path / "scenario.toml").write_text(SCENARIO)
     spec = load_scenario(tmp_path)
     assert spec.split.robots == 3 and spec.split.test_every == 5 and spec.training.own_holdout_every == 3
-    doc = swarm_document(spec, "scene.json", {1: "tcp/127.0.0.1:1"}, "t-1")
+    doc = swarm_document(spec, "scene.json", {1: "tls/127.0.0.1:1"}, "t-1")
     swarm = write_swarm_file(tmp_path / "swarm.toml", doc)
     cfg, _ = load_swarm_file(swarm)
     for section in ("topology", "training", "align", "sfm"):
         assert getattr(cfg, section) == getattr(spec, section), section
     assert cfg.daemon == dataclasses.replace(spec.daemon, keep_rounds=True)
-    assert cfg.network.endpoints == {"1": "tcp/127.0.0.1:1"}
+    assert cfg.network.endpoints == {"1": "tls/127.0.0.1:1"} and not cfg.security.insecure
     assert apply_overrides(spec, ["align.min_inliers=30"]).align.min_inliers == 30
 
 
@@ -106,3 +106,19 @@ def test_a_swarm_file_without_frames_is_told_what_to_say(tmp_path):
     path.write_text('[swarm]\nname = "s"\nrobots = [1, 2]\n[topology]\nkind = "line"\n')
     with pytest.raises(ConfigError, match="swarm.frames: say which frames"):
         load_swarm_file(path)
+
+
+def test_a_scenario_is_secure_unless_it_says_insecure(tmp_path):
+    from cli.scenario.runner import link_scheme
+
+    (tmp_path / "scenario.toml").write_text(SCENARIO)
+    secure = load_scenario(tmp_path)
+    assert link_scheme(secure, ["tcp/10.0.0.1:7447"]) == ["tls/10.0.0.1:7447"]
+    doc = swarm_document(secure, "scene.json", {1: "tls/127.0.0.1:1"}, "t-1")
+    assert doc["security"]["insecure"] is False and doc["security"]["monitor_dir"] == "data/monitor"
+    (tmp_path / "scenario.toml").write_text(SCENARIO + "[security]\ninsecure = true\n")
+    insecure = load_scenario(tmp_path)
+    assert link_scheme(insecure, ["tcp/10.0.0.1:7447"]) == ["tcp/10.0.0.1:7447"]
+    cfg, _ = load_swarm_file(write_swarm_file(tmp_path / "swarm.toml",
+                                              swarm_document(insecure, "scene.json", {1: "tcp/127.0.0.1:1"}, "t-1")))
+    assert cfg.security.insecure and cfg.network.endpoints == {"1": "tcp/127.0.0.1:1"}
