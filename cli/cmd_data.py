@@ -16,6 +16,23 @@ from cli.main import app
 from cli.options import DATA_HELP
 
 
+def _write_split_swarm(out: Path, ids: list[int], cfg, topology: str, port_base: int, insecure: bool,
+                       training: dict) -> None:
+    """swarm.toml beside the robot folders, and (unless insecure) the swarm CA and certificates."""
+    from agent.frames import frames_of_split
+    from cli.swarm_file import SWARM_FILE, loopback_endpoints, security_sections, swarm_doc, write_swarm_file
+    from protocol.pki import create_swarm_pki
+
+    name = "".join(c if c.isalnum() or c in "-_" else "-" for c in out.resolve().name) or "swarm"
+    if not insecure:
+        create_swarm_pki(out, name, ids)
+    sec = security_sections(insecure)
+    network = {**sec["network"], "endpoints": loopback_endpoints(ids, port_base, tls=not insecure)}
+    write_swarm_file(out / SWARM_FILE, swarm_doc(name, ids, frames_of_split(cfg.frame, cfg.images_only), topology,
+                                                 network=network, training=training, security=sec["security"]),
+                     header="written by `dinerf-agent split`; edit freely (see cli/swarm_file.py)")
+
+
 @app.command()
 @friendly_errors
 def split(
@@ -70,21 +87,9 @@ def split(
     cfg = apply_overrides(cfg, sets)
     views, result = split_dataset(data, cfg, width)
     write_split(result, out, overwrite=force)
-    from agent.frames import frames_of_split
-    from cli.swarm_file import SWARM_FILE, loopback_endpoints, security_sections, swarm_doc, write_swarm_file
-    from protocol.pki import create_swarm_pki
-
     ids = sorted(result.robots)
-    name = "".join(c if c.isalnum() or c in "-_" else "-" for c in Path(out).resolve().name) or "swarm"
-    frames = frames_of_split(cfg.frame, cfg.images_only)
     training = {k: v for k, v in (("rounds", rounds), ("steps_per_round", steps)) if v is not None}
-    if not insecure:
-        create_swarm_pki(Path(out), name, ids)
-    sec = security_sections(insecure)
-    network = {**sec["network"], "endpoints": loopback_endpoints(ids, port_base, tls=not insecure)}
-    write_swarm_file(Path(out) / SWARM_FILE, swarm_doc(name, ids, frames, topology, network=network, training=training,
-                                                      security=sec["security"]),
-                     header="written by `dinerf-agent split`; edit freely (see cli/swarm_file.py)")
+    _write_split_swarm(Path(out), ids, cfg, topology, port_base, insecure, training)
     _print_split(result, f"{len(views)} views of {data} -> {out}")
     console = Console()
     console.print(f"scene box: {result.box_source}; depth prior: {cfg.depth_prior}; truth.json is for evaluation only")
