@@ -143,18 +143,21 @@ def evaluate_robot(trainer, evalset: EvalSet, robot_id: int, with_ssim: bool = T
         intrinsics=evalset.shared_intrinsics(camera_of),
         names=evalset.views.names,
     )
-    scores = trainer.evaluate(shared, frame="shared", with_ssim=with_ssim)
+    # with per-image appearance, a held-out view is seen through the colour transform of the robot's
+    # own training view nearest in pose (as NeRF-W scores unseen views); None: the field's own colour
+    looks = trainer.appearance_for(shared.c2w)
+    scores = trainer.evaluate(shared, frame="shared", with_ssim=with_ssim, appearance=looks)
     true_k = None
     if compare_true_intrinsics and not torch.equal(shared.intrinsics, evalset.views.intrinsics):
         as_truth = Views(images=shared.images, c2w=shared.c2w, intrinsics=evalset.views.intrinsics, names=shared.names)
-        true_k = trainer.evaluate(as_truth, frame="shared", with_ssim=False)["psnr"]
+        true_k = trainer.evaluate(as_truth, frame="shared", with_ssim=False, appearance=looks)["psnr"]
     fitted = None
     if pose_fit_steps > 0:
         gt = shared.rgb(1.0)  # [M, H, W, 3]
         cams = torch.stack([fit_view_pose(trainer, shared.c2w[m], shared.intrinsics[m], gt[m], pose_fit_steps, seed=m)
                             for m in range(len(shared))])
         moved = Views(images=shared.images, c2w=cams.cpu(), intrinsics=shared.intrinsics, names=shared.names)
-        fitted = trainer.evaluate(moved, frame="shared", with_ssim=False)["psnr"]
+        fitted = trainer.evaluate(moved, frame="shared", with_ssim=False, appearance=looks)["psnr"]
     own = trainer.own_views_psnr(own_views_every) if own_views_every > 0 else None
     estimate = trainer.pose.matrix().detach().double().cpu()
     return RobotEval(
