@@ -7,6 +7,7 @@ as it does over Zenoh (tests/system/test_daemon.py).
 
 from __future__ import annotations
 
+import statistics
 import threading
 
 import pytest
@@ -81,3 +82,36 @@ def test_a_line_of_three_in_one_process_matches_the_simulation(tmp_path):
         assert [r.round for r in records] == [1, 2, 3, 4, 5]
         line = {1: [2], 2: [1, 3], 3: [2]}[i]
         assert all(r.heard == line and r.bytes_in for r in records), records
+
+
+@pytest.mark.parametrize("mode", ["delta+topk", "delta+int8"])
+def test_a_compressed_line_of_three_hears_everyone_at_a_fraction_of_the_bytes(tmp_path, mode):
+    """The daemons' own path with compression on: every round every neighbour's delta arrives and
+    resolves against theta^0 and then the previous round (no full snapshot after the seed), at a
+    fraction of float32; each robot ends holding exactly its neighbours' public copies."""
+    from agent.checkpoint import load_for_eval
+
+    torch.set_num_threads(1)
+    swarm = make_swarm(tmp_path, robots=3, topology="line")
+    cfg = from_dict(DaemonConfig, {"startup_wait_s": 5.0, "round_timeout_s": 30.0, "initial_pose": "identity",
+                                   "linger_s": 0.2, "threads": 1,
+                                   "exchange": {"compression": mode, "topk_fraction": 0.05}})
+    daemons = run_in_process(swarm, None, cfg)
+    sim = simulate(swarm)
+    limit = 0.1 if mode == "delta+topk" else 0.4
+    for i in swarm.robots:
+        records = read_telemetry(RunFolder(swarm.run_dir(i)).telemetry)
+        line = {1: [2], 2: [1, 3], 3: [2]}[i]
+        assert [r.round for r in records] == [1, 2, 3, 4, 5] and all(r.heard == line for r in records), records
+        assert all(sorted(r.bytes_out_links) == line for r in records)
+        assert all(r.wire_ratio is not None and r.wire_ratio < limit for r in records), [r.wire_ratio for r in records]
+        assert "base_missing" not in daemons[i].folder.events.read_text()
+        for j in line:  # what i holds of j is j's public copy, bit for bit (the digest says so)
+            assert daemons[i].exchange.bases.held(j) == daemons[j].exchange.encoder.public() != None
+        holdout = sim.robots[i].holdout
+        p_coded = statistics.fmean(load_for_eval(swarm.run_dir(i), swarm.root / f"robot{i}")
+                                   .evaluate(holdout, frame="local", with_ssim=False)["psnr"])
+        p_f32 = statistics.fmean(sim.robots[i].trainer.evaluate(holdout, frame="local", with_ssim=False)["psnr"])
+        print(f"{mode} robot {i}: wire ratio {[round(r.wire_ratio, 4) for r in records]}, "
+              f"own held-out PSNR {p_coded:.2f} dB, float32 {p_f32:.2f} dB")
+        assert p_coded > p_f32 - 1.5
