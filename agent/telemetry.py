@@ -91,7 +91,8 @@ class RoundRecord:
             f"round {self.round:3d}/{rounds} | loss {self.loss:.5f} | psnr {psnr} | "
             f"pose est {self.pose_rotation_deg:6.2f} deg, |t| {self.translation_norm:.3f}, s {self.pose_scale:.3f}"
             f" ({state}) | heard {self.heard}/{self.reachable} | "
-            f"in {sum(self.bytes_in.values()) / 1e6:.1f} MB out {self.bytes_out / 1e6:.1f} MB | "
+            f"in {sum(self.bytes_in.values()) / 1e6:.1f} MB out {self.bytes_out / 1e6:.1f} MB"
+            f"{f' ({self.wire_ratio:.3f} of float32)' if self.wire_ratio is not None and self.wire_ratio < 0.9 else ''} | "
             f"compute {self.seconds_compute:.1f} s wait {self.seconds_wait:.1f} s"
         )
 
