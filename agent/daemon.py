@@ -41,6 +41,7 @@ from agent.geometry import pose_summary
 from agent.swarm import RobotSetup, SwarmTrainingConfig, build_robot
 from agent.telemetry import EventLog, JsonLines, PlateauRule, Reporter, RoundRecord, StatusBoard
 from protocol import codec
+from protocol.compression import CompressionConfig
 from protocol.exchange import ExchangeTiming, SnapshotExchange, plan_catch_up
 from protocol.keys import Keys
 from protocol.membership import Membership, Topology
@@ -85,12 +86,17 @@ class DaemonConfig:
     realign_every: int = 2
     realign_from_field_after: int = 4
     plateau: PlateauRule = field(default_factory=PlateauRule)  # when a flat, high loss is worth a warning
+    # How snapshots go on the wire ([daemon.exchange]): none | fp16 | int8 | delta+int8 | delta+topk
+    exchange: CompressionConfig = field(default_factory=CompressionConfig)
 
     def __post_init__(self) -> None:
         if self.round_timeout_s <= 0 or self.heartbeat_s <= 0 or self.threads < 1:
             raise ValueError("round_timeout_s and heartbeat_s must be > 0, threads >= 1")
         if self.summary_width is not None and (not isinstance(self.summary_width, int) or self.summary_width < 8):
             raise ValueError(f"summary_width must be >= 8 pixels (or unset: the images' own size), got {self.summary_width!r}")
+        if self.wire_dtype != "float32" and self.exchange.compression != "none":
+            raise ValueError(f"daemon.wire_dtype = {self.wire_dtype!r} and daemon.exchange.compression = "
+                             f"{self.exchange.compression!r}: choose one (compression = \"fp16\" is float16)")
         if self.silent_after_s < 2 * self.heartbeat_s:
             raise ValueError(f"silent_after_s ({self.silent_after_s}) must be at least two heartbeats "
                              f"({2 * self.heartbeat_s} s): one lost heartbeat must not count as silence")
@@ -183,7 +189,8 @@ class Daemon:
         self.membership = self.presence.membership
         self.exchange = SnapshotExchange(network, self.keys, robot_id, self.membership.neighbours, self.mailbox,
                                          self.presence.last_heard, cfg.exchange_timing(), self._stop, self.report.say,
-                                         self.report.event, self.report.reject, self._claimed_round)
+                                         self.report.event, self.report.reject, self._claimed_round,
+                                         cfg.exchange)
         initial = Alignment.IDENTITY if cfg.initial_pose == "identity" else Alignment.PENDING
         with torch.no_grad():
             self.board = StatusBoard(alignment=initial, alignment_detail="",
@@ -336,6 +343,8 @@ class Daemon:
     def run(self) -> int:
         """Returns the number of rounds completed by this process."""
         resumed = self._resume()
+        if not resumed and self.cfg.exchange.compression.startswith("delta"):
+            self.exchange.seed(_to_numpy(self.trainer.theta()))  # theta^0, which every robot holds
         self.exchange.start()
         self.presence.start()
         completed = 0
@@ -347,7 +356,7 @@ class Daemon:
             self._apply_reference()
             self.report.event("start", resumed=resumed, alive=sorted(self.membership.alive),
                               reference=self.membership.reference)
-            stats0 = self.net.stats()
+            stats0 = self._traffic()
             if self._in_consensus():
                 self._publish_theta(self.round)
             heard = self._barrier()[0]
@@ -356,7 +365,7 @@ class Daemon:
             while self.round < self.training.rounds:
                 self._check_stop()
                 completed += self._one_round(heard_in=heard, stats_before=stats0)
-                stats0 = self.net.stats()
+                stats0 = self._traffic()
                 heard = self._last_heard
             self.folder.write_done(self.robot_id, self.round, self.report.rejected_counts())
             self.report.say(f"done: {self.round} rounds")
@@ -417,6 +426,18 @@ class Daemon:
                          f"{len(last)} rounds: the field may not model what the cameras see (an RGB capture needs "
                          "an unbounded field: training.train.field.unbounded; see `dinerf-agent inspect` warnings)")
 
+    def _traffic(self) -> dict:
+        """The network's counters and, per neighbour, the snapshot bytes pushed so far."""
+        return {**self.net.stats(), "links": self.exchange.bytes_sent()}
+
+    def _link_bytes(self, stats_before: dict) -> tuple[dict[int, int], float | None]:
+        """Per neighbour the snapshot bytes pushed this round, and their mean over the raw float32 size."""
+        before = stats_before.get("links", {})
+        links = {j: b - before.get(j, 0) for j, b in self.exchange.bytes_sent().items()}
+        links = {j: b for j, b in links.items() if b}
+        raw = 4 * self.spec.num_values
+        return links, (sum(links.values()) / len(links) / raw if links and raw else None)
+
     def _pose(self) -> dict:
         with torch.no_grad():
             return pose_summary(self.trainer.pose.matrix())
@@ -435,6 +456,7 @@ class Daemon:
         net = self.net.stats()
         bytes_in = {int(j): net["bytes_in"].get(j, 0) - stats_before["bytes_in"].get(j, 0) for j in net["bytes_in"]}
         pose, s = self._pose(), self.board.own()
+        links, ratio = self._link_bytes(stats_before)
         return RoundRecord(
             robot=self.robot_id, round=self.round, time=time.time(), monotonic=time.monotonic(), loss=stats.loss,
             rgb_loss=stats.rgb_loss, depth_loss=stats.depth_loss, batch_psnr=stats.batch_psnr, psnr=psnr,
@@ -443,7 +465,8 @@ class Daemon:
             reference=self.membership.reference, elected=self.elected, epoch=self.membership.epoch,
             live_neighbours=sorted(self.membership.live_neighbours), reachable=sorted(self.presence.reachable()),
             heard=heard, bytes_in={j: b for j, b in bytes_in.items() if b},
-            bytes_out=net["bytes_out_total"] - stats_before["bytes_out_total"], seconds_compute=t_compute,
+            bytes_out=net["bytes_out_total"] - stats_before["bytes_out_total"], bytes_out_links=links,
+            wire_ratio=ratio, seconds_compute=t_compute,
             seconds_wait=waited, seconds_last_put=self.exchange.last_put_seconds(), steps=stats.steps,
             seconds_per_step=stats.seconds / max(stats.steps, 1), rejected=self.report.rejected_counts(),
             alignment=Alignment(s["alignment"]).value, alignment_detail=s["alignment_detail"])

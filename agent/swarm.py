@@ -15,6 +15,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, Mapping
 
+import numpy as np
+import torch
 from torch import Tensor
 
 from agent.consensus import ConsensusConfig, disagreement
@@ -22,6 +24,9 @@ from agent.data.views import Views
 from agent.geometry import pose_summary
 from agent.telemetry import RoundRecord
 from agent.trainer import RobotTrainer, StepStats, TrainConfig
+from protocol import codec
+from protocol.compression import BaseBook, CompressionConfig, SnapshotEncoder
+from protocol.messages import ModelSpec, ThetaSnapshot
 
 
 @dataclass
@@ -95,8 +100,39 @@ def build_robot(
     return RobotSetup(robot_id, trainer, holdout)
 
 
+class ProtocolWire:
+    """What neighbours receive of a robot's theta in the simulation: the daemon's own encode,
+    decode and base resolution (:mod:`protocol.compression`), so a compressed swarm trains in one
+    process on exactly the models the daemons would hold; ``sent[i]`` lists the push sizes."""
+
+    SWARM = "simulation"
+
+    def __init__(self, cfg: CompressionConfig, theta0: Mapping[str, Tensor], robots: list[int]) -> None:
+        numpy0 = {n: t.detach().cpu().numpy().astype(np.float32) for n, t in theta0.items()}
+        self.spec = ModelSpec.from_tensors(numpy0)
+        self.expect = codec.Expectation(self.SWARM, self.spec, max_wire_bytes=8 * self.spec.num_values + (1 << 20),
+                                        max_decompressed_bytes=8 * self.spec.num_values + (1 << 20))
+        self.encoders = {i: SnapshotEncoder(cfg) for i in robots}
+        self.book = BaseBook()  # every receiver of a sender holds the same reconstruction
+        self.sent: dict[int, list[int]] = {i: [] for i in robots}
+        if cfg.compression.startswith("delta"):  # as the daemons: theta^0 is everyone's first base
+            for i in robots:
+                self.encoders[i].seed(numpy0)
+                self.book.seed(i, numpy0)
+
+    def __call__(self, sender: int, round_index: int, theta: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        tensors = {n: np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32) for n, t in theta.items()}
+        msg = ThetaSnapshot(self.SWARM, sender, round_index, 0, self.spec.signature(), tensors)
+        push, _ = self.encoders[sender].encode(msg, self.spec, "zstd")
+        self.sent[sender].append(len(push))
+        got = self.book.resolve(codec.decode(push, self.expect, kind="theta"), self.spec)
+        assert isinstance(got, ThetaSnapshot), f"robot {sender} round {round_index}: {got}"
+        return {n: torch.from_numpy(np.array(a, copy=True)) for n, a in got.tensors.items()}
+
+
 class Simulation:
-    """N robots on a topology in one process, exchanging theta through memory."""
+    """N robots on a topology in one process, exchanging theta through memory (or a ``wire``:
+    ``wire(sender, round, theta) -> what its neighbours receive``, e.g. :class:`ProtocolWire`)."""
 
     def __init__(
         self,
@@ -106,8 +142,10 @@ class Simulation:
         cfg: SwarmTrainingConfig,
         initial_poses: Mapping[int, Tensor] | None = None,
         reference_id: int | None = None,
+        wire: Callable[[int, int, Mapping[str, Tensor]], dict[str, Tensor]] | None = None,
     ) -> None:
         self.cfg = cfg
+        self.wire = wire
         self.neighbours = {i: sorted(neighbours[i]) for i in robots}
         self.reference_id = min(robots) if reference_id is None else reference_id
         initial_poses = initial_poses or {}
@@ -129,13 +167,15 @@ class Simulation:
         for i, robot in self.robots.items():
             robot.trainer.begin_round(k, {j: self.thetas[j] for j in self.neighbours[i]})
             stats[i] = robot.trainer.train(self.cfg.steps_per_round)
-        new = {i: r.trainer.theta() for i, r in self.robots.items()}
+        own = new = {i: r.trainer.theta() for i, r in self.robots.items()}
+        if self.wire is not None:
+            new = {i: self.wire(i, k + 1, theta) for i, theta in own.items()}
         for i, robot in self.robots.items():
             robot.trainer.end_round({j: new[j] for j in self.neighbours[i]})
         self.thetas = new
         self.round += 1
         ids = list(self.robots)
-        dis = dict(zip(ids, disagreement([list(new[i].values()) for i in ids])))
+        dis = dict(zip(ids, disagreement([list(own[i].values()) for i in ids])))
         return {i: self._record(i, stats[i], dis[i]) for i in ids}
 
     def _record(self, i: int, stats: StepStats, disagreement_i: float) -> RoundRecord:

@@ -48,6 +48,8 @@ class RoundRecord:
     heard: list[int] = field(default_factory=list)  # neighbours whose snapshot this round used
     bytes_in: dict[int, int] = field(default_factory=dict)  # per sender, this round
     bytes_out: int = 0
+    bytes_out_links: dict[int, int] = field(default_factory=dict)  # per neighbour: snapshot bytes pushed this round
+    wire_ratio: float | None = None  # mean of bytes_out_links over the raw float32 snapshot: 1.0 = uncompressed
     seconds_compute: float = 0.0
     seconds_wait: float = 0.0  # at the barrier, waiting for neighbours
     seconds_last_put: dict[int, float] = field(default_factory=dict)  # per neighbour: the last put's duration
@@ -62,6 +64,7 @@ class RoundRecord:
         doc = dataclasses.asdict(self)
         doc["bytes_in"] = {str(j): b for j, b in self.bytes_in.items()}
         doc["seconds_last_put"] = {str(j): s for j, s in self.seconds_last_put.items()}
+        doc["bytes_out_links"] = {str(j): b for j, b in self.bytes_out_links.items()}
         return json.dumps(doc)
 
     @classmethod
@@ -71,6 +74,7 @@ class RoundRecord:
         kwargs = {k: v for k, v in doc.items() if k in names}
         kwargs["bytes_in"] = {int(j): int(b) for j, b in (doc.get("bytes_in") or {}).items()}
         kwargs["seconds_last_put"] = {int(j): float(s) for j, s in (doc.get("seconds_last_put") or {}).items()}
+        kwargs["bytes_out_links"] = {int(j): int(b) for j, b in (doc.get("bytes_out_links") or {}).items()}
         return cls(**kwargs)
 
     @property
@@ -87,7 +91,8 @@ class RoundRecord:
             f"round {self.round:3d}/{rounds} | loss {self.loss:.5f} | psnr {psnr} | "
             f"pose est {self.pose_rotation_deg:6.2f} deg, |t| {self.translation_norm:.3f}, s {self.pose_scale:.3f}"
             f" ({state}) | heard {self.heard}/{self.reachable} | "
-            f"in {sum(self.bytes_in.values()) / 1e6:.1f} MB out {self.bytes_out / 1e6:.1f} MB | "
+            f"in {sum(self.bytes_in.values()) / 1e6:.1f} MB out {self.bytes_out / 1e6:.1f} MB"
+            f"{f' ({self.wire_ratio:.3f} of float32)' if self.wire_ratio is not None and self.wire_ratio < 0.9 else ''} | "
             f"compute {self.seconds_compute:.1f} s wait {self.seconds_wait:.1f} s"
         )
 

@@ -14,8 +14,10 @@ from typing import Any
 
 import numpy as np
 
+from protocol.compression import check_coded_table
 from protocol.expectation import Expectation
-from protocol.messages import KEYFRAME_ARRAYS, KEYFRAME_CAMERA_DIM, KIND_STATUS, KIND_THETA, MAX_ROUND, Rejected, is_int
+from protocol.messages import (KEYFRAME_ARRAYS, KEYFRAME_CAMERA_DIM, KIND_STATUS, KIND_THETA, MAX_ROUND, CodedTheta,
+                               Rejected, is_int)
 from protocol.untrusted import describe
 
 #: Array dtypes that may appear on the wire, as little-endian numpy dtypes.
@@ -23,6 +25,7 @@ ARRAY_DTYPES = {
     "float32": np.dtype("<f4"),
     "float16": np.dtype("<f2"),
     "uint8": np.dtype("u1"),
+    "int8": np.dtype("i1"),
     "int32": np.dtype("<i4"),
 }
 
@@ -53,14 +56,22 @@ def table_bytes(table: ArrayTable) -> int:
     return sum(dt.itemsize * math.prod(shape) for _, dt, shape in table)
 
 
-def check_array_table(table: Any, msg_kind: str, wire_dtype: str, expect: Expectation) -> ArrayTable:
-    """Validate the header's array table for this kind; raise Rejected('bad_shape'|'too_large'|...)."""
+def check_array_table(table: Any, msg_kind: str, wire_dtype: str, expect: Expectation,
+                      coded: CodedTheta | None = None) -> ArrayTable:
+    """Validate the header's array table for this kind; raise Rejected('bad_shape'|'too_large'|...).
+
+    ``coded``: a compressed snapshot's coding (from its meta), whose arrays the spec also fixes."""
     entries = _table_entries(table, expect)
     if msg_kind == KIND_STATUS:
         if entries:
             raise Rejected("bad_shape", "status messages carry no arrays")
         return []
-    if msg_kind == KIND_THETA:
+    if msg_kind == KIND_THETA and coded is not None:
+        assert expect.spec is not None  # checked with the signature
+        if wire_dtype != "float32":
+            raise Rejected("bad_encoding", "a compressed snapshot decodes to float32")
+        check_coded_table(entries, coded, expect.spec)
+    elif msg_kind == KIND_THETA:
         _check_theta_table(entries, wire_dtype, expect)
     else:
         _check_keyframe_table(entries, expect)

@@ -36,6 +36,7 @@ import numpy as np
 import zstandard
 
 from protocol.array_table import ARRAY_DTYPES, pack_arrays
+from protocol.compression import coded_arrays, coded_meta
 from protocol.expectation import MiB, Expectation
 from protocol.frame import (
     HEADER_FIELDS,
@@ -146,6 +147,8 @@ def _encode_theta(msg: ThetaSnapshot, wire_dtype: str, compression: str, level: 
         raise ValueError(f"wire_dtype must be one of {WIRE_DTYPES}, got {wire_dtype!r}")
     if not isinstance(msg.signature, str) or not msg.signature:
         raise ValueError("ThetaSnapshot.signature must be the model spec's signature")
+    if msg.coded is not None:
+        return _encode_coded_theta(msg, compression, level, spec)
     if spec is not None:
         spec.check(msg.tensors)
         if spec.signature() != msg.signature:
@@ -165,6 +168,17 @@ def _encode_theta(msg: ThetaSnapshot, wire_dtype: str, compression: str, level: 
             bad = [n for n, a, _ in arrays if not np.isfinite(a.astype(dt)).all()]
         raise ValueError(f"non-finite values (NaN/inf, or float16 overflow) in tensors {bad}")
     return _seal(KIND_THETA, msg, msg.signature, wire_dtype, compression, level, raw, table, {})
+
+
+def _encode_coded_theta(msg: ThetaSnapshot, compression: str, level: int, spec: ModelSpec | None) -> bytes:
+    """A compressed snapshot (:mod:`protocol.compression`): its arrays as laid out for the spec."""
+    if spec is None or spec.signature() != msg.signature:
+        raise ValueError("a compressed snapshot needs the model spec it was made for")
+    arrays = [(name, np.asarray(a), ARRAY_DTYPES[dtype]) for name, a, dtype in coded_arrays(msg.coded, spec)]
+    if any(dt.kind == "f" and a.size and not np.isfinite(a).all() for _, a, dt in arrays):
+        raise ValueError("non-finite int8 scales in a compressed snapshot")
+    raw, table = pack_arrays(arrays)
+    return _seal(KIND_THETA, msg, msg.signature, "float32", compression, level, raw, table, coded_meta(msg.coded))
 
 
 def _encode_keyframes(msg: KeyframeSummary, compression: str, level: int) -> bytes:

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Literal, Mapping
 
 from protocol import codec
+from protocol.compression import BaseBook, CompressionConfig, SnapshotEncoder
 from protocol.keys import Keys
 from protocol.membership import LastHeard
 from protocol.messages import ModelSpec, Rejected, ThetaSnapshot
@@ -91,21 +92,47 @@ class _NewestJobThread:
                 self._cond.notify_all()
 
 
+#: Deltas queued for one neighbour before they are replaced by one full snapshot.
+MAX_CHAIN = 4
+
+
 class NeighbourSender(_NewestJobThread):
     """Delivers this robot's newest snapshot to one neighbour.
 
     A put with congestion control BLOCK can wait on a cut or congested link for seconds; with
     one sender per neighbour (and keys addressed to that neighbour) it delays that neighbour's
-    copy only, never the round loop nor the other neighbours.
+    copy only, never the round loop nor the other neighbours. A full snapshot replaces whatever
+    waits; a delta is queued behind the frames still waiting, since each is the next one's base
+    (up to :data:`MAX_CHAIN`, then the full snapshot goes instead).
     """
 
     def __init__(self, net: Network, key_for_round: Callable[[int], str], log: Log) -> None:
         self._net = net
         self._key = key_for_round
+        self.bytes_sent = 0  # what this link's puts carried, in all
         super().__init__("sender", log)
 
-    def _do(self, round_index: int, data: bytes) -> None:
-        self._net.publish(self._key(round_index), data)
+    def offer_frames(self, round_index: int, push: bytes, full: bytes, delay_s: float = 0.0) -> None:
+        """Send ``push`` for ``round_index``; ``full`` (the same model, lossless) stands in for a chain too long."""
+        with self._cond:
+            pending = self._slot
+            if pending is not None and pending[0] > round_index:
+                return
+            if push is full or pending is None:
+                frames = [(round_index, push)]
+            elif len(pending[1]) < MAX_CHAIN:
+                frames = [*pending[1], (round_index, push)]
+            else:
+                frames = [(round_index, full)]
+            if pending is None or push is full:
+                self._not_before = time.monotonic() + delay_s
+            self._slot = (round_index, frames)
+            self._cond.notify_all()
+
+    def _do(self, round_index: int, data: list[tuple[int, bytes]]) -> None:
+        for k, frame in data:
+            self._net.publish(self._key(k), frame)
+            self.bytes_sent += len(frame)
 
 
 class NeighbourPuller(_NewestJobThread):
@@ -209,7 +236,8 @@ class SnapshotExchange:
     def __init__(self, net: Network, keys: Keys, robot_id: int, neighbours: frozenset[int],
                  mailbox: Mailbox[ThetaSnapshot], last_heard: LastHeard, timing: ExchangeTiming,
                  stop: threading.Event, log: Log, event: Event, reject: Reject,
-                 claimed_round: Callable[[int], int | None] = lambda j: None) -> None:
+                 claimed_round: Callable[[int], int | None] = lambda j: None,
+                 compression: CompressionConfig | None = None) -> None:
         """claimed_round(j): the round neighbour j says it has completed (its newest heartbeat)."""
         self.net, self.keys, self.robot_id, self.neighbours = net, keys, robot_id, neighbours
         self.mailbox, self.last_heard, self.timing, self._stop = mailbox, last_heard, timing, stop
@@ -220,7 +248,16 @@ class SnapshotExchange:
         self._senders: dict[int, NeighbourSender] = {}
         self._pullers: dict[int, NeighbourPuller] = {}
         self._barrier_began: tuple[int, float] = (-1, 0.0)  # (round, monotonic) of the current barrier
-        self.latest: tuple[int, bytes] | None = None  # (round, encoded) last published
+        self.latest: tuple[int, bytes] | None = None  # (round, encoded) last published, lossless
+        self.encoder = SnapshotEncoder(compression or CompressionConfig())
+        self.bases = BaseBook()  # per neighbour the model its deltas are against
+
+    def seed(self, theta0: Mapping[str, Any]) -> None:
+        """Every robot of the swarm starts from the same theta^0: a base both ends hold already,
+        so even the first snapshot can be a delta (its digest proves the base is the same)."""
+        self.encoder.seed(theta0)
+        for j in self.neighbours:
+            self.bases.seed(j, theta0)
 
     def start(self) -> None:
         """Subscribe to every neighbour's snapshots addressed to us; one sender and puller each."""
@@ -247,21 +284,26 @@ class SnapshotExchange:
     def last_put_seconds(self) -> dict[int, float]:
         return {j: round(s.last_seconds, 3) for j, s in self._senders.items()}
 
+    def bytes_sent(self) -> dict[int, int]:
+        """Per neighbour, the snapshot bytes its link carried so far (pushes, not pull replies)."""
+        return {j: s.bytes_sent for j, s in self._senders.items()}
+
     # ------------------------------------------------------------------ out
     def publish(self, msg: ThetaSnapshot, spec: ModelSpec, wire_dtype: str, compression: str) -> None:
-        """Encode once; serve it as ``latest``; hand a copy to every neighbour's sender."""
-        data = codec.encode(msg, wire_dtype=wire_dtype, compression=compression, spec=spec)
-        self.net.set_latest(data, round=msg.round)
-        self.latest = (msg.round, data)
+        """Encode once; serve the lossless frame as ``latest``; hand the push to every neighbour's sender."""
+        push, full = self.encoder.encode(msg, spec, compression, wire_dtype)
+        self.net.set_latest(full, round=msg.round)
+        self.latest = (msg.round, full)
         for sender in self._senders.values():
-            sender.offer(msg.round, data)
+            sender.offer_frames(msg.round, push, full)
 
     def link_appeared(self, j: int) -> None:
         """A link (re)appeared: snapshots pushed meanwhile found no subscriber. Push ours again
-        once the new session's subscriptions are through (the barrier pulls theirs)."""
+        (the full one: the deltas between are lost) once the new session's subscriptions are
+        through (the barrier pulls theirs)."""
         latest = self.latest
         if latest is not None and j in self._senders:
-            self._senders[j].offer(*latest, delay_s=self.timing.resend_delay_s)
+            self._senders[j].offer_frames(latest[0], latest[1], latest[1], delay_s=self.timing.resend_delay_s)
 
     # ------------------------------------------------------------------ in
     def on_theta(self, key: str, data: bytes) -> None:
@@ -275,6 +317,15 @@ class SnapshotExchange:
             msg = codec.decode(data, expect, kind="theta", key=parsed)
             self._check_horizon(msg)
             self.last_heard.heard(msg.sender)
+            got = self.bases.resolve(msg, expect.spec)
+            if got == "missing":  # a lost push, or we restarted: its latest is the full model
+                self._event("base_missing", sender=msg.sender, snapshot_round=msg.round)
+                if msg.sender in self._pullers:
+                    self._pullers[msg.sender].offer(msg.round)
+                return
+            if got == "old":
+                return
+            msg = got
             self.mailbox.offer(msg.sender, msg.round, msg)
             barrier_round, began = self._barrier_began
             waited = time.monotonic() - began if msg.round == barrier_round else 0.0
@@ -322,6 +373,12 @@ class SnapshotExchange:
             last = self.mailbox.last_round
             if last is not None and msg.round > last:
                 raise Rejected("too_far_ahead", f"round {msg.round}, the last round is {last}")
+            got = self.bases.resolve(msg, self.expect.spec)
+            if got == "old":
+                return None
+            if got == "missing":
+                raise Rejected("unknown_base", f"round {msg.round}: a delta where the full snapshot was due")
+            msg = got
         except Rejected as e:
             self._reject(e.reason, f"latest of robot {j}: {e.detail}")
             return None

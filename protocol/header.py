@@ -16,6 +16,7 @@ import msgpack
 import numpy as np
 
 from protocol.array_table import ArrayTable, check_array_table, table_bytes
+from protocol.compression import check_meta as check_theta_meta
 from protocol.expectation import Expectation
 from protocol.frame import CHECKSUM_HEX_LENGTH, HEADER_FIELDS, MAGIC, PREFIX, PREFIX_LENGTH
 from protocol.keys import ParsedKey
@@ -28,7 +29,9 @@ from protocol.messages import (
     MAX_ROUND,
     SCHEMA_VERSION,
     WIRE_DTYPES,
+    CodedTheta,
     Header,
+    ModelSpec,
     Rejected,
     is_int,
     is_number,
@@ -47,6 +50,8 @@ class ParsedFrame:
     arrays: ArrayTable
     meta: dict[str, Any]
     payload: memoryview
+    coded: CodedTheta | None = None  # a compressed snapshot's coding, its arrays still unread
+    spec: ModelSpec | None = None  # the receiver's model spec (snapshots)
 
 
 def parse_frame(data: Any, expect: Expectation, kind: str | None, key: ParsedKey | None) -> ParsedFrame:
@@ -62,15 +67,16 @@ def parse_frame(data: Any, expect: Expectation, kind: str | None, key: ParsedKey
     checksum = h["checksum"]
     if not isinstance(checksum, str) or len(checksum) != CHECKSUM_HEX_LENGTH:
         raise Rejected("bad_header", "checksum is not a 16-character hex string")
-    arrays = check_array_table(h["arrays"], msg_kind, h["wire_dtype"], expect)
+    coded = check_theta_meta(h["meta"]) if msg_kind == KIND_THETA else None
+    arrays = check_array_table(h["arrays"], msg_kind, h["wire_dtype"], expect, coded)
     _check_raw_length(h["raw_length"], arrays, msg_kind)
-    meta = _check_meta(h["meta"], msg_kind)
+    meta = h["meta"] if msg_kind == KIND_THETA else _check_meta(h["meta"], msg_kind)
     header = Header(
         schema=schema, kind=msg_kind, swarm=h["swarm"], sender=h["sender"], round=h["round"], epoch=h["epoch"],
         signature=h["signature"], wire_dtype=h["wire_dtype"], compression=h["compression"],
         raw_length=h["raw_length"], payload_length=h["payload_length"], checksum=checksum,
     )
-    return ParsedFrame(header, h, arrays, meta, view[PREFIX_LENGTH + header_length :])
+    return ParsedFrame(header, h, arrays, meta, view[PREFIX_LENGTH + header_length :], coded, expect.spec)
 
 
 def _split_prefix(data: Any, expect: Expectation) -> tuple[memoryview, int]:

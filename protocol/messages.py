@@ -74,6 +74,7 @@ REJECT_REASONS: dict[str, str] = {
     "stale_round": "round is older than the current one",
     "too_far_ahead": "round is past the swarm's last round",
     "ahead_of_sender": "round is more than one past what its sender's heartbeat says it has completed",
+    "unknown_base": "a compressed snapshot names a base we do not hold, where a full one was due",
 }
 
 
@@ -209,8 +210,26 @@ class Alignment(str, enum.Enum):
 
 
 @dataclass
+class CodedTheta:
+    """A compressed snapshot's content (:mod:`protocol.compression`): its mode, the base it is a
+    delta against (round, digest; -1 and "" without one), the digest of the model it decodes to,
+    and its arrays by wire name (``<tensor>/q``, ``<tensor>/scale``, ``<tensor>/gaps``)."""
+
+    mode: str
+    chunk: int
+    base_round: int
+    base_digest: str
+    digest: str
+    arrays: dict[str, np.ndarray]
+
+
+@dataclass
 class ThetaSnapshot:
-    """A robot's model parameters at the end of ``round`` (float32 in memory, ordered)."""
+    """A robot's model parameters at the end of ``round`` (float32 in memory, ordered).
+
+    A compressed one has ``coded`` set and no ``tensors`` until
+    :meth:`protocol.compression.BaseBook.resolve` rebuilds them from its base.
+    """
 
     swarm: str
     sender: int
@@ -219,6 +238,7 @@ class ThetaSnapshot:
     signature: str
     tensors: dict[str, np.ndarray]
     header: Header | None = None  # set by decode
+    coded: CodedTheta | None = None
 
     kind = KIND_THETA
 

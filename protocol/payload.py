@@ -15,6 +15,7 @@ import numpy as np
 import zstandard
 
 from protocol.array_table import unpack_arrays
+from protocol.compression import check_coded_values
 from protocol.frame import frame_checksum
 from protocol.header import ParsedFrame
 from protocol.messages import (
@@ -40,6 +41,10 @@ def decode_payload(parsed: ParsedFrame) -> Message:
     if h.kind == KIND_STATUS:
         return _status(raw, parsed)
     arrays = unpack_arrays(raw, parsed.arrays)
+    if h.kind == KIND_THETA and parsed.coded is not None:
+        assert parsed.spec is not None  # a snapshot's table was checked against it
+        return ThetaSnapshot(swarm=h.swarm, sender=h.sender, round=h.round, epoch=h.epoch, signature=h.signature,
+                             tensors={}, header=h, coded=check_coded_values(arrays, parsed.coded, parsed.spec))
     if h.kind == KIND_THETA:
         return ThetaSnapshot(swarm=h.swarm, sender=h.sender, round=h.round, epoch=h.epoch,
                              signature=h.signature, tensors=arrays, header=h)

@@ -1,12 +1,15 @@
-"""A userspace link emulator: delay, jitter and loss on an L2 link, for kernels without ``netem``.
+"""A userspace link emulator: delay, jitter, loss and a rate cap on an L2 link, for kernels without ``netem``.
 
 Some kernels (this project's VMs among them) are built without ``sch_netem``, so ``tc qdisc ...
 netem`` fails with "Specified qdisc kind is unknown". Then an impaired link a-b is built as
 ``a <-veth-> relay namespace <-veth-> b`` and this process, inside the relay namespace, copies
 every Ethernet frame between its two interfaces through raw ``AF_PACKET`` sockets, holding each
 frame for ``delay +- jitter`` and dropping it with probability ``loss``, independently in each
-direction (as ``netem`` on both ends of the link would). Frames keep their order (``netem``
-may reorder with jitter; TCP does not mind either way).
+direction (as ``netem`` on both ends of the link would). With ``rate_mbit`` a frame also waits
+for the wire: it leaves ``size / rate`` after the frame before it did, and a frame that finds
+:data:`QUEUE_LIMIT` frames waiting is dropped (netem's default limit), so a robot's wireless
+link of a few Mbit/s is slow the way a real one is. Frames keep their order (``netem`` may
+reorder with jitter; TCP does not mind either way).
 
 Details that make it correct rather than approximately right:
 
@@ -17,7 +20,7 @@ Details that make it correct rather than approximately right:
 - frames the socket itself sent (``PACKET_OUTGOING``) are not forwarded again.
 
 Control: one JSON object per line on stdin, e.g. ``{"delay_ms": 100, "jitter_ms": 10, "loss":
-0.1}``; ``{}`` makes the link clean. Prints ``ready`` once both sockets are bound, and a JSON
+0.1, "rate_mbit": 20}``; ``{}`` makes the link clean. Prints ``ready`` once both sockets are bound, and a JSON
 line of counters on every change and at exit (stdin closed, SIGTERM or SIGINT).
 
 Run as ``python -m cli.scenario.linkemu IF_A IF_B`` (root, inside the relay namespace).
@@ -39,6 +42,7 @@ ETH_P_ALL = 0x0003
 SOL_PACKET = 263
 PACKET_VNET_HDR = 15
 MAX_FRAME = 65536 + 64
+QUEUE_LIMIT = 1000  # frames waiting in one direction before a rate-capped link drops (netem's default)
 
 
 class Impairment:
@@ -48,11 +52,13 @@ class Impairment:
         self.delay = 0.0
         self.jitter = 0.0
         self.loss = 0.0
+        self.rate = 0.0  # bits per second; 0: no cap
 
-    def set(self, delay_ms: float = 0.0, jitter_ms: float = 0.0, loss: float = 0.0) -> None:
-        if delay_ms < 0 or jitter_ms < 0 or not 0 <= loss < 1:
-            raise ValueError("need delay_ms >= 0, jitter_ms >= 0, 0 <= loss < 1")
+    def set(self, delay_ms: float = 0.0, jitter_ms: float = 0.0, loss: float = 0.0, rate_mbit: float = 0.0) -> None:
+        if delay_ms < 0 or jitter_ms < 0 or not 0 <= loss < 1 or rate_mbit < 0:
+            raise ValueError("need delay_ms >= 0, jitter_ms >= 0, 0 <= loss < 1, rate_mbit >= 0")
         self.delay, self.jitter, self.loss = delay_ms / 1000.0, jitter_ms / 1000.0, float(loss)
+        self.rate = float(rate_mbit) * 1e6
 
 
 class Direction:
@@ -63,6 +69,7 @@ class Direction:
         self.queue: list[tuple[float, int, bytes]] = []
         self.cv = threading.Condition()
         self.last_release = 0.0
+        self.wire_free = 0.0  # when the frames accepted so far have all left the wire (rate cap)
         self.seq = 0
         self.counts = {"frames": 0, "bytes": 0, "dropped": 0, "sent": 0}
 
@@ -78,9 +85,10 @@ class Direction:
                 self.counts["dropped"] += 1
                 continue
             now = time.monotonic()
-            delay = imp.delay + (self.rng.uniform(-imp.jitter, imp.jitter) if imp.jitter else 0.0)
-            release = max(now + max(delay, 0.0), self.last_release)  # keep the order
-            self.last_release = release
+            release = self.schedule(now, len(data), len(self.queue))
+            if release is None:
+                self.counts["dropped"] += 1
+                continue
             with self.cv:  # the sender sends under the lock too, so a direct send never overtakes
                 if release <= now and not self.queue:
                     self._send(data)
@@ -88,6 +96,23 @@ class Direction:
                 self.seq += 1
                 heapq.heappush(self.queue, (release, self.seq, data))
                 self.cv.notify()
+
+    def schedule(self, now: float, size: int, waiting: int) -> float | None:
+        """When a frame of ``size`` bytes arriving at ``now`` leaves, or None if the queue is full.
+
+        Without a cap: after its delay. With one: after the wire has carried the frames before
+        it and this one (``size * 8 / rate``), then its delay. Never before the frame before it.
+        """
+        imp = self.imp
+        delay = max(imp.delay + (self.rng.uniform(-imp.jitter, imp.jitter) if imp.jitter else 0.0), 0.0)
+        leaves = now
+        if imp.rate:
+            if waiting >= QUEUE_LIMIT:
+                return None
+            self.wire_free = leaves = max(now, self.wire_free) + size * 8 / imp.rate
+        release = max(leaves + delay, self.last_release)  # keep the order
+        self.last_release = release
+        return release
 
     def send_forever(self) -> None:
         while True:
@@ -139,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
                 return
             exited.set()
         line = json.dumps({"event": event, "delay_ms": imp.delay * 1000, "jitter_ms": imp.jitter * 1000,
-                           "loss": imp.loss, **{d.name: dict(d.counts) for d in dirs}})
+                           "loss": imp.loss, "rate_mbit": imp.rate / 1e6, **{d.name: dict(d.counts) for d in dirs}})
         sys.stdout.write(line + "\n")  # one write: a signal arriving mid-print cannot split the line
         sys.stdout.flush()
 

@@ -16,7 +16,7 @@ Layout of one run (``lab = NetnsLab([1, 2, 3], [(1, 2), (2, 3)]); lab.create()``
 - veths are created directly inside the namespaces, so deleting the namespaces removes them:
   nothing is ever left in the root namespace.
 
-Impairment (delay/jitter/loss) uses ``tc qdisc ... netem`` on both ends of the link when the
+Impairment (delay/jitter/loss, a rate cap) uses ``tc qdisc ... netem`` on both ends of the link when the
 kernel has ``sch_netem``; otherwise (``impair="relay"``, or ``"auto"`` on such a kernel) an
 impairable link is built through a relay namespace ``<run>-l<a>-<b>`` in which
 :mod:`cli.scenario.linkemu` forwards frames with the delay and loss. Which links may be impaired
@@ -379,16 +379,19 @@ class NetnsLab:
             run_ip("link", "set", Link.ifname(l.other(robot)), "up" if up else "down", ns=self.ns(robot))
         self.link_state[(l.a, l.b)]["up"] = up
 
-    def impair(self, a: int, b: int, delay_ms: float = 0.0, jitter_ms: float = 0.0, loss: float = 0.0) -> None:
-        """Delay/jitter/loss on link a-b in both directions; all zero makes it clean again."""
+    def impair(self, a: int, b: int, delay_ms: float = 0.0, jitter_ms: float = 0.0, loss: float = 0.0,
+               rate_mbit: float = 0.0) -> None:
+        """Delay/jitter/loss and a rate cap (Mbit/s, 0: none) on link a-b in both directions; all
+        zero makes it clean again."""
         l = self.link(a, b)
         key = (l.a, l.b)
-        clean = delay_ms == 0 and jitter_ms == 0 and loss == 0
+        clean = delay_ms == 0 and jitter_ms == 0 and loss == 0 and rate_mbit == 0
         if key in self.relays:
             proc = self.relays[key]
             if proc.poll() is not None or proc.stdin is None:
                 raise NetnsError(f"link emulator of {a}-{b} is not running (exit {proc.poll()})")
-            proc.stdin.write(json.dumps({"delay_ms": delay_ms, "jitter_ms": jitter_ms, "loss": loss}) + "\n")
+            proc.stdin.write(json.dumps({"delay_ms": delay_ms, "jitter_ms": jitter_ms, "loss": loss,
+                                         "rate_mbit": rate_mbit}) + "\n")
             proc.stdin.flush()
         else:
             if key not in self.impairable and not clean and self.impair_mode != "netem" and not netem_available():
@@ -400,8 +403,10 @@ class NetnsLab:
                     _run(tc + ["del", "dev", dev, "root"], check=False)
                 else:
                     args = ["delay", f"{delay_ms}ms"] + ([f"{jitter_ms}ms"] if jitter_ms else []) + (["loss", f"{100 * loss}%"] if loss else [])
+                    args += ["rate", f"{rate_mbit}mbit"] if rate_mbit else []  # netem's own rate: delay after the wire
                     _run(tc + ["replace", "dev", dev, "root", "netem"] + args)
-        self.link_state[key]["impair"] = None if clean else {"delay_ms": delay_ms, "jitter_ms": jitter_ms, "loss": loss}
+        self.link_state[key]["impair"] = None if clean else {"delay_ms": delay_ms, "jitter_ms": jitter_ms, "loss": loss,
+                                                             "rate_mbit": rate_mbit}
 
     def impair_backend(self, a: int, b: int) -> str:
         l = self.link(a, b)

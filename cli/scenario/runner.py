@@ -344,8 +344,11 @@ class ScenarioRunner:
         for x in f.netem:
             a, b = x.link
             desc = f"netem on link {a}-{b}: delay {x.delay_ms:g} ms +- {x.jitter_ms:g}, loss {100 * x.loss:g}%"
-            items.append((x.from_round, 1, desc, lambda x=x: self.lab.impair(*x.link, x.delay_ms, x.jitter_ms, x.loss),
-                          {"fault": "netem", "link": [a, b], "delay_ms": x.delay_ms, "jitter_ms": x.jitter_ms, "loss": x.loss}))
+            desc += f", rate {x.rate_mbit:g} Mbit/s" if x.rate_mbit else ""
+            items.append((x.from_round, 1, desc, lambda x=x: self.lab.impair(*x.link, x.delay_ms, x.jitter_ms, x.loss,
+                                                                             x.rate_mbit),
+                          {"fault": "netem", "link": [a, b], "delay_ms": x.delay_ms, "jitter_ms": x.jitter_ms, "loss": x.loss,
+                           "rate_mbit": x.rate_mbit}))
             if x.to_round is not None and x.to_round < self.spec.rounds:
                 items.append((x.to_round, 0, f"clean link {a}-{b}", lambda a=a, b=b: self.lab.impair(a, b), {"fault": "netem-end", "link": [a, b]}))
         return sorted(items, key=lambda t: (t[0], t[1]))

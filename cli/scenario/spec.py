@@ -140,9 +140,11 @@ class CutFault:
 
 @dataclass
 class NetemFault:
-    """Delay/jitter/loss on link a-b (both directions) from ``from_round`` until ``to_round``.
+    """Delay/jitter/loss and a rate cap on link a-b (both directions) from ``from_round`` until ``to_round``.
 
-    ``delay_ms`` is one-way (a round trip gets twice), ``loss`` a fraction in [0, 1) per packet.
+    ``delay_ms`` is one-way (a round trip gets twice), ``loss`` a fraction in [0, 1) per packet,
+    ``rate_mbit`` the link's capacity in each direction (0: none; a robots' wireless mesh has a
+    few to a few tens of Mbit/s, from round 0 it is the link itself).
     """
 
     link: tuple[int, int]
@@ -151,6 +153,7 @@ class NetemFault:
     delay_ms: float = 0.0
     jitter_ms: float = 0.0
     loss: float = 0.0
+    rate_mbit: float = 0.0
 
     def __post_init__(self) -> None:
         if self.delay_ms < 0 or self.jitter_ms < 0:
@@ -159,8 +162,10 @@ class NetemFault:
             raise ValueError(f"netem on link {list(self.link)}: jitter_ms ({self.jitter_ms}) must not exceed delay_ms")
         if not 0.0 <= self.loss < 1.0:
             raise ValueError(f"netem on link {list(self.link)}: loss is a fraction in [0, 1), got {self.loss}")
-        if self.delay_ms == 0 and self.loss == 0:
-            raise ValueError(f"netem on link {list(self.link)}: set delay_ms and/or loss")
+        if self.rate_mbit < 0:
+            raise ValueError(f"netem on link {list(self.link)}: rate_mbit must be >= 0 (0: no cap)")
+        if self.delay_ms == 0 and self.loss == 0 and self.rate_mbit == 0:
+            raise ValueError(f"netem on link {list(self.link)}: set delay_ms, loss and/or rate_mbit")
 
 
 @dataclass

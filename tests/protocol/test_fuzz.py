@@ -26,10 +26,11 @@ import pytest
 import zstandard
 
 from protocol import codec
+from protocol.compression import CompressionConfig, code_snapshot
 from protocol.messages import KIND_KEYFRAMES, KIND_STATUS, KIND_THETA, Rejected, Status
 from tests.protocol.helpers import (Packed, deep_list, expectation, frame_of, keyframe_summary,
-                                    keyframe_summary_with_cameras, pack_map, rle_zstd_frame, snapshot,
-                                    split_frame, status_message)
+                                    keyframe_summary_with_cameras, pack_map, rle_zstd_frame, small_spec,
+                                    snapshot, split_frame, status_message)
 
 SEED = 20240611
 INPUTS = 60_000
@@ -121,6 +122,14 @@ class Base:
         self.raw = zstandard.ZstdDecompressor().decompress(self.payload) if compressed else self.payload
 
 
+def _coded(mode: str, **kw: Any) -> bytes:
+    """A compressed snapshot (a delta against another snapshot for the delta modes)."""
+    base = snapshot(seed=7).tensors
+    cfg = CompressionConfig(compression=mode, topk_fraction=0.25, chunk=16)
+    coded, _ = code_snapshot(snapshot(), cfg, None if mode == "int8" else (4, "0123456789abcdef", base))
+    return codec.encode(coded, spec=small_spec(), **kw)
+
+
 def _bases() -> list[Base]:
     with_box = keyframe_summary_with_cameras()
     box = np.diag([0.5, 0.5, 0.5, 1.0])
@@ -135,6 +144,9 @@ def _bases() -> list[Base]:
         Base(codec.encode(keyframe_summary())),
         Base(codec.encode(keyframe_summary(np.float32, points=20), compression="none")),
         Base(codec.encode(with_box)),
+        Base(_coded("delta+topk")),
+        Base(_coded("delta+int8", compression="none")),
+        Base(_coded("int8")),
     ]
 
 
@@ -150,6 +162,8 @@ def bit_flips(base: Base, rng: random.Random) -> bytes:
     data = bytearray(base.data)
     for _ in range(rng.randint(1, 8)):
         data[rng.randrange(len(data))] ^= 1 << rng.randrange(8)
+    if data == base.data:  # the same bit flipped twice: not a mutation at all
+        data[0] ^= 1
     return bytes(data)
 
 
@@ -287,6 +301,12 @@ def _same_message(a: Any, b: Any) -> bool:
     """Same kind, identity and content (header bytes may differ: a forger packs bodies its own way)."""
     if type(a) is not type(b) or (a.swarm, a.sender, a.round, a.epoch) != (b.swarm, b.sender, b.round, b.epoch):
         return False
+    if a.kind == KIND_THETA and (a.coded is not None or b.coded is not None):
+        x, y = a.coded, b.coded
+        return (a.signature == b.signature and x is not None and y is not None and list(x.arrays) == list(y.arrays)
+                and (x.mode, x.chunk, x.base_round, x.base_digest, x.digest)
+                == (y.mode, y.chunk, y.base_round, y.base_digest, y.digest)
+                and all(np.array_equal(x.arrays[n], y.arrays[n]) for n in x.arrays))
     if a.kind == KIND_THETA:
         return (a.signature == b.signature and list(a.tensors) == list(b.tensors)
                 and all(a.tensors[n].tobytes() == b.tensors[n].tobytes() for n in a.tensors))
@@ -301,7 +321,7 @@ def _same_message(a: Any, b: Any) -> bool:
 def _assert_round_trips(msg: Any, expect: codec.Expectation) -> None:
     """An accepted frame is a message we could have sent ourselves: it encodes, and decodes to itself."""
     h = msg.header
-    options = {"wire_dtype": h.wire_dtype} if h.kind == KIND_THETA else {}
+    options = {"wire_dtype": h.wire_dtype, "spec": expect.spec} if h.kind == KIND_THETA else {}
     again = codec.decode(codec.encode(msg, compression=h.compression, **options), expect)
     assert _same_message(msg, again), h
 

@@ -129,6 +129,30 @@ def test_loss_drops_its_share_and_tcp_still_delivers(tmp_path):
     assert 0.07 < dropped / frames < 0.13, (dropped, frames)
 
 
+@pytest.mark.parametrize("impair", ["relay"] + (["netem"] if netem_available() else []))
+def test_a_rate_cap_makes_a_transfer_take_size_over_rate(impair):
+    """20 Mbit/s: 2.5 MB take at least 1 s (2.5e6 * 8 / 20e6), and not much more; clean, far less."""
+    pfx = prefix()
+    with NetnsLab([1, 2], [(1, 2)], prefix=pfx, impairable=[(1, 2)], impair=impair) as lab:
+        server = start_echo(lab, 1)
+        addr = lab.link(1, 2).addr(1)
+        try:
+            clean = probe(lab, 2, addr, n=1, size=2_500_000, timeout=60)
+            lab.impair(1, 2, rate_mbit=20)
+            capped = probe(lab, 2, addr, n=1, size=2_500_000, timeout=60)
+            lab.impair(1, 2)
+            again = probe(lab, 2, addr, n=1, size=2_500_000, timeout=60)
+        finally:
+            server.kill()
+            server.wait()
+        assert clean["ok"] and capped["ok"] and again["ok"], (clean, capped, again)
+        print(f"2.5 MB: clean {clean['rtts'][0]:.2f} s, at 20 Mbit/s {capped['rtts'][0]:.2f} s, "
+              f"clean again {again['rtts'][0]:.2f} s")
+        assert 1.0 <= capped["rtts"][0] < 1.6, capped  # headers and acks cost a few percent
+        assert clean["rtts"][0] < 0.5 and again["rtts"][0] < 0.5, (clean, again)
+    assert ours(pfx) == []
+
+
 CHILD = textwrap.dedent("""
     import sys, time
     from cli.scenario.netns import NetnsLab, signals_raise

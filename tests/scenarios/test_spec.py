@@ -72,7 +72,7 @@ netem = [{ link = [2, 3], from_round = 0, delay_ms = 100, loss = 0.1 }]
         ("[faults]\ncut = [{ link = [1, 2], from_round = 3, to_round = 2 }]\n", "to_round"),
         ("[faults]\ncut = [{ link = [1, 2], from_round = 1 }, { link = [2, 1], from_round = 3 }]\n", "overlap"),
         ("[faults]\nnetem = [{ link = [1, 2], from_round = 1, loss = 1.5 }]\n", "loss"),
-        ("[faults]\nnetem = [{ link = [1, 2], from_round = 1 }]\n", "delay_ms and/or loss"),
+        ("[faults]\nnetem = [{ link = [1, 2], from_round = 1 }]\n", "delay_ms, loss and/or rate_mbit"),
         ("[faults]\nnetem = [{ link = [1, 2], from_round = 1, delay_ms = 5, jitter_ms = 9 }]\n", "jitter"),
         ("[faults]\nkil = []\n", "kil"),
         ("[run]\nmode = 'docker'\n", "docker"),

@@ -1,0 +1,372 @@
+"""Compressed snapshots: int8 quantisation, delta coding against a named base, top-k with error feedback.
+
+A float32 hash table is incompressible (zstd gains nothing), so a robot sending its whole field
+every round at float32 makes the network, not the CPU, set the pace on a slow link. The modes
+(``CompressionConfig.compression``):
+
+- ``none``        float32, bit-identical (today's frames);
+- ``fp16``        float16 (``wire_dtype="float16"``), lossy, half the bytes;
+- ``int8``        every value as int8 with one float32 scale per ``chunk`` values; stateless;
+- ``delta+int8``  ``theta - base`` as int8: untouched entries are exact zeros, which zstd squeezes;
+- ``delta+topk``  only the ``topk_fraction`` largest entries of ``theta - base`` per tensor, as
+                  int8, with their indices as gaps split into byte planes (zstd packs them).
+
+**Error feedback, CHOCO-SGD style.** The sender keeps a public copy ``x_hat``: exactly what its
+receivers reconstruct. Each delta is ``theta - x_hat``, and ``x_hat`` advances by what was sent,
+so what top-k or rounding leaves out now is in the next delta: the sum of what was sent plus the
+residual ``theta - x_hat`` is the sum of the true deltas, and nothing is lost for good.
+
+**Bases.** A delta names its base by round and digest (blake2b-64 over the float32 bytes), and
+the frame names the digest of the reconstruction, so a receiver never builds a model from a base
+it does not hold: it verifies both, and a receiver missing the base (a lost push, a late joiner,
+a restart) asks for the sender's ``latest``, which is always the full float32 ``x_hat``.
+
+Frames stay self-describing: the codec's header meta says the mode, chunk, base and digest; the
+array table lists per tensor ``<name>/q`` (int8), ``<name>/scale`` (float32) and, for top-k,
+``<name>/gaps`` (uint8 [4, k]), all checked against the model spec before any allocation.
+Pure Python + numpy; no torch, no zenoh.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import threading
+from dataclasses import dataclass
+from typing import Any, Literal, Mapping
+
+import numpy as np
+
+from protocol.messages import MAX_ROUND, CodedTheta, ModelSpec, Rejected, ThetaSnapshot, is_int
+
+MODES = ("none", "fp16", "int8", "delta+int8", "delta+topk")
+CODED_MODES = ("int8", "delta+int8", "delta+topk")  # frames with a coded array table
+DELTA_MODES = ("delta+int8", "delta+topk")  # frames that need a base
+META_FIELDS = {"code", "chunk", "base_round", "base", "digest"}
+MAX_CHUNK = 1 << 20
+_DIGEST_HEX = 16
+_NO_BASE = -1  # base_round of a frame without a base
+
+
+@dataclass
+class CompressionConfig:
+    """How this robot's snapshots go on the wire (``[daemon.exchange]``)."""
+
+    compression: Literal["none", "fp16", "int8", "delta+int8", "delta+topk"] = "none"
+    # delta+topk: the share of each tensor's entries sent per round (the rest waits, error feedback)
+    topk_fraction: float = 0.05
+    chunk: int = 1024  # values per int8 scale: smaller follows the hash levels' ranges closer
+
+    def __post_init__(self) -> None:
+        if self.compression not in MODES:
+            raise ValueError(f"compression must be one of {MODES}, got {self.compression!r}")
+        if not 0.0 < self.topk_fraction <= 0.5:
+            raise ValueError(f"topk_fraction must be in (0, 0.5], got {self.topk_fraction!r}")
+        if not is_int(self.chunk) or not 16 <= self.chunk <= MAX_CHUNK:
+            raise ValueError(f"chunk must be an integer in [16, {MAX_CHUNK}], got {self.chunk!r}")
+
+
+def theta_digest(tensors: Mapping[str, np.ndarray]) -> str:
+    """blake2b-64 (hex) of names and float32 bytes, in order: what names a base."""
+    h = hashlib.blake2b(digest_size=8)
+    for name, a in tensors.items():
+        h.update(name.encode())
+        h.update(np.ascontiguousarray(a, dtype=np.float32).data)
+    return h.hexdigest()
+
+
+# --------------------------------------------------------------------------- quantisation
+
+
+def quantise(values: np.ndarray, chunk: int) -> tuple[np.ndarray, np.ndarray]:
+    """float32 [n] -> (int8 [n], float32 scales [ceil(n / chunk)]): symmetric, per chunk."""
+    n = values.size
+    m = -(-n // chunk)
+    padded = np.zeros(m * chunk, dtype=np.float32)
+    padded[:n] = values
+    blocks = padded.reshape(m, chunk)
+    scale = (np.abs(blocks).max(axis=1) / np.float32(127)).astype(np.float32) if m else np.zeros(0, np.float32)
+    with np.errstate(divide="ignore"):
+        inverse = np.where(scale > 0, np.float32(1) / np.where(scale > 0, scale, 1), 0).astype(np.float32)
+    q = np.clip(np.rint(blocks * inverse[:, None]), -127, 127).astype(np.int8).reshape(-1)[:n]
+    return q, scale
+
+
+def dequantise(q: np.ndarray, scale: np.ndarray, chunk: int) -> np.ndarray:
+    """The float32 values both ends compute from (q, scale): bit-identical on either side."""
+    return q.astype(np.float32) * np.repeat(scale, chunk)[: q.size]
+
+
+def _gap_planes(index: np.ndarray) -> np.ndarray:
+    """Sorted indices [k] -> gaps as uint8 byte planes [4, k] (high planes are zeros: zstd packs them)."""
+    gaps = np.diff(index, prepend=0).astype("<u4")
+    return np.ascontiguousarray(gaps.view(np.uint8).reshape(-1, 4).T)
+
+
+def _indices(planes: np.ndarray, size: int, name: str) -> np.ndarray:
+    """Byte planes [4, k] -> strictly increasing indices below ``size``; hostile ones refused."""
+    gaps = np.ascontiguousarray(planes.T).view("<u4").reshape(-1).astype(np.int64)
+    if gaps.size and ((gaps[1:] < 1).any() or gaps.sum() >= size):
+        raise Rejected("bad_field", f"{name[:64]!r}: top-k indices not increasing or beyond {size} entries")
+    return np.cumsum(gaps)
+
+
+# --------------------------------------------------------------------------- encoding
+
+
+def _code_tensor(mode: str, name: str, delta: np.ndarray, cfg: CompressionConfig
+                 ) -> tuple[list[tuple[str, np.ndarray, str]], np.ndarray]:
+    """One tensor's arrays and the float32 delta [n] they decode to."""
+    flat = delta.reshape(-1)
+    if mode != "delta+topk":
+        q, scale = quantise(flat, cfg.chunk)
+        return [(f"{name}/q", q, "int8"), (f"{name}/scale", scale, "float32")], dequantise(q, scale, cfg.chunk)
+    k = min(math.ceil(cfg.topk_fraction * flat.size), int(np.count_nonzero(flat)))
+    index = np.sort(np.argpartition(-np.abs(flat), k - 1)[:k]) if k else np.zeros(0, np.int64)
+    q, scale = quantise(flat[index], cfg.chunk)
+    decoded = np.zeros_like(flat)
+    decoded[index] = dequantise(q, scale, cfg.chunk)
+    return [(f"{name}/gaps", _gap_planes(index), "uint8"), (f"{name}/q", q, "int8"),
+            (f"{name}/scale", scale, "float32")], decoded
+
+
+def code_snapshot(msg: ThetaSnapshot, cfg: CompressionConfig, base: tuple[int, str, Mapping[str, np.ndarray]] | None
+                  ) -> tuple[ThetaSnapshot, dict[str, np.ndarray]]:
+    """(coded snapshot, the float32 tensors a receiver reconstructs from it).
+
+    ``base`` = (round, digest, tensors) for a delta mode; its tensors are what the receivers hold.
+    """
+    mode = cfg.compression
+    if mode not in CODED_MODES:
+        raise ValueError(f"{mode!r} is not a coded mode")
+    if (base is None) == (mode in DELTA_MODES):
+        raise ValueError(f"{mode}: a base is {'needed' if base is None else 'not used'}")
+    arrays: dict[str, np.ndarray] = {}
+    recon: dict[str, np.ndarray] = {}
+    for name, t in msg.tensors.items():
+        a = np.asarray(t, dtype=np.float32)
+        start = np.asarray(base[2][name], dtype=np.float32) if base is not None else np.zeros_like(a)
+        parts, decoded = _code_tensor(mode, name, a - start, cfg)
+        arrays.update({n: v for n, v, _ in parts})
+        recon[name] = (start.reshape(-1) + decoded).reshape(a.shape) if base is not None else decoded.reshape(a.shape)
+    coded = CodedTheta(mode=mode, chunk=cfg.chunk, base_round=base[0] if base else _NO_BASE,
+                       base_digest=base[1] if base else "", digest=theta_digest(recon), arrays=arrays)
+    return ThetaSnapshot(msg.swarm, msg.sender, msg.round, msg.epoch, msg.signature, {}, coded=coded), recon
+
+
+def coded_arrays(coded: CodedTheta, spec: ModelSpec) -> list[tuple[str, np.ndarray, str]]:
+    """(name, array, wire dtype) in table order, checked against the spec (for our own sends)."""
+    out = []
+    for name, dtype, shape in coded_layout(coded.mode, coded.chunk, spec, _sent_counts(coded, spec)):
+        a = coded.arrays.get(name)
+        if a is None or tuple(a.shape) != shape:
+            raise ValueError(f"coded array {name!r} missing or not of shape {shape}")
+        out.append((name, a, dtype))
+    return out
+
+
+def _sent_counts(coded: CodedTheta, spec: ModelSpec) -> list[int]:
+    if coded.mode != "delta+topk":
+        return [p.size for p in spec.params]
+    return [int(np.shape(coded.arrays[f"{p.name}/q"])[0]) for p in spec.params]
+
+
+def coded_meta(coded: CodedTheta) -> dict[str, Any]:
+    return {"code": coded.mode, "chunk": coded.chunk, "base_round": coded.base_round, "base": coded.base_digest,
+            "digest": coded.digest}
+
+
+# --------------------------------------------------------------------------- decoding checks
+
+
+def coded_layout(mode: str, chunk: int, spec: ModelSpec, counts: list[int]) -> list[tuple[str, str, tuple[int, ...]]]:
+    """The array table a coded frame must have: per tensor (name, wire dtype, shape)."""
+    table = []
+    for p, k in zip(spec.params, counts):
+        if mode == "delta+topk":
+            table.append((f"{p.name}/gaps", "uint8", (4, k)))
+        table += [(f"{p.name}/q", "int8", (k,)), (f"{p.name}/scale", "float32", (-(-k // chunk),))]
+    return table
+
+
+def check_meta(meta: Any) -> CodedTheta | None:
+    """A theta frame's meta: {} for a plain one, else the coding; the arrays come later."""
+    if not isinstance(meta, dict):
+        raise Rejected("bad_header", "meta is not a map")
+    if not meta:
+        return None
+    if set(meta) != META_FIELDS:
+        raise Rejected("bad_field", f"theta meta must be empty or have exactly {sorted(META_FIELDS)}")
+    mode, chunk, base_round, base, digest = (meta[k] for k in ("code", "chunk", "base_round", "base", "digest"))
+    if mode not in CODED_MODES:
+        raise Rejected("bad_encoding", f"unknown snapshot code, want one of {CODED_MODES}")
+    if not is_int(chunk) or not 16 <= chunk <= MAX_CHUNK:
+        raise Rejected("bad_field", f"chunk must be an integer in [16, {MAX_CHUNK}]")
+    if not (isinstance(digest, str) and len(digest) == _DIGEST_HEX and isinstance(base, str)):
+        raise Rejected("bad_field", "digest must be a 16-character string, base a string")
+    delta = mode in DELTA_MODES
+    if not is_int(base_round) or not (_NO_BASE <= base_round <= MAX_ROUND if delta else base_round == _NO_BASE) \
+            or (len(base) == _DIGEST_HEX) != delta or (not delta and base):
+        raise Rejected("bad_field", f"{mode}: base_round and base do not fit the code")
+    return CodedTheta(mode=mode, chunk=chunk, base_round=base_round, base_digest=base, digest=digest, arrays={})
+
+
+def check_coded_table(entries: list[tuple[str, str, tuple[int, ...]]], coded: CodedTheta, spec: ModelSpec) -> None:
+    """The header's array table against the spec, before any payload byte is read."""
+    per = 3 if coded.mode == "delta+topk" else 2
+    if len(entries) != per * len(spec.params):
+        raise Rejected("bad_shape", f"{len(entries)} coded arrays, the spec's {len(spec.params)} tensors need "
+                                    f"{per * len(spec.params)}")
+    counts = []
+    for i, p in enumerate(spec.params):
+        shape = entries[i * per + per - 2][2]  # the q array of this tensor
+        if len(shape) != 1 or shape[0] > p.size or (coded.mode != "delta+topk" and shape[0] != p.size):
+            raise Rejected("bad_shape", f"tensor {p.name!r}: {list(shape)[:4]} coded values for {p.size} entries")
+        counts.append(shape[0])
+    for got, want in zip(entries, coded_layout(coded.mode, coded.chunk, spec, counts)):
+        if got != want:
+            raise Rejected("bad_shape", f"coded array {got[0][:64]!r} {got[1]} {list(got[2])[:4]}, "
+                                        f"want {want[0]!r} {want[1]} {list(want[2])}")
+
+
+def check_coded_values(arrays: dict[str, np.ndarray], coded: CodedTheta, spec: ModelSpec) -> CodedTheta:
+    """After decompression: scales non-negative, top-k indices in range (stored decoded)."""
+    out: dict[str, np.ndarray] = {}
+    for p in spec.params:
+        scale = arrays[f"{p.name}/scale"]
+        if scale.size and not (scale >= 0).all():
+            raise Rejected("bad_field", f"{p.name[:64]!r}: negative int8 scale")
+        out[f"{p.name}/q"], out[f"{p.name}/scale"] = arrays[f"{p.name}/q"], scale
+        if coded.mode == "delta+topk":
+            out[f"{p.name}/index"] = _indices(arrays[f"{p.name}/gaps"], p.size, p.name)
+            out[f"{p.name}/gaps"] = arrays[f"{p.name}/gaps"]
+    return CodedTheta(coded.mode, coded.chunk, coded.base_round, coded.base_digest, coded.digest, out)
+
+
+def reconstruct(coded: CodedTheta, spec: ModelSpec, base: Mapping[str, np.ndarray] | None) -> dict[str, np.ndarray]:
+    """The float32 tensors of a checked coded snapshot (its base's for a delta); digest verified."""
+    out = {}
+    for p in spec.params:
+        decoded = dequantise(coded.arrays[f"{p.name}/q"], coded.arrays[f"{p.name}/scale"], coded.chunk)
+        if coded.mode == "delta+topk":
+            full = np.zeros(p.size, np.float32)
+            full[coded.arrays[f"{p.name}/index"]] = decoded
+            decoded = full
+        t = decoded if base is None else np.asarray(base[p.name], dtype=np.float32).reshape(-1) + decoded
+        out[p.name] = t.reshape(p.shape)
+    if any(t.size and not np.isfinite(t).all() for t in out.values()):
+        raise Rejected("non_finite", "the reconstructed snapshot overflows")
+    if theta_digest(out) != coded.digest:
+        raise Rejected("bad_checksum", "the reconstructed snapshot differs from the sender's (digest)")
+    return out
+
+
+# --------------------------------------------------------------------------- both ends
+
+
+class BaseBook:
+    """Receiver side: per sender the newest full model we hold of it, the base its deltas name.
+
+    A plain float32 snapshot (a push in mode ``none``, every ``latest`` reply) or a reconstruction
+    becomes the sender's base once it is newer than the one held. Thread-safe (Zenoh callbacks and
+    pullers both resolve).
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._held: dict[int, tuple[int, dict[str, np.ndarray], list[str]]] = {}  # sender -> (round, tensors, [digest])
+
+    def seed(self, sender: int, tensors: Mapping[str, np.ndarray]) -> None:
+        """A base held before round 0 (theta^0, the same on every robot that shares the init seed)."""
+        with self._lock:
+            self._held.setdefault(sender, (_NO_BASE, dict(tensors), []))
+
+    def held_round(self, sender: int) -> int | None:
+        with self._lock:
+            held = self._held.get(sender)
+            return None if held is None else held[0]
+
+    def held(self, sender: int) -> tuple[int, str] | None:
+        """(round, digest) of the base held for ``sender``: to check it is the sender's public copy."""
+        with self._lock:
+            held = self._held.get(sender)
+            return None if held is None else (held[0], self._digest(held))
+
+    def resolve(self, msg: ThetaSnapshot, spec: ModelSpec) -> ThetaSnapshot | Literal["missing", "old"]:
+        """The snapshot with its float32 tensors, or why not: ``missing`` base (ask for a full
+        one) or ``old`` (a newer model of that sender is held already: nothing to do)."""
+        coded = msg.coded
+        with self._lock:
+            held = self._held.get(msg.sender)
+            if coded is not None and coded.mode in DELTA_MODES:
+                if held is not None and msg.round <= held[0]:
+                    return "old"
+                if held is None or held[0] != coded.base_round or self._digest(held) != coded.base_digest:
+                    return "missing"
+                tensors = reconstruct(coded, spec, held[1])
+            elif coded is not None:
+                tensors = reconstruct(coded, spec, None)
+            else:
+                tensors = msg.tensors
+            out = ThetaSnapshot(msg.swarm, msg.sender, msg.round, msg.epoch, msg.signature, tensors, msg.header)
+            lossless = coded is not None or msg.header is None or msg.header.wire_dtype == "float32"
+            newer = held is None or msg.round > held[0] or (coded is None and msg.round == held[0])
+            if lossless and newer:  # a plain frame of the held round is the sender's own word on it
+                self._held[msg.sender] = (msg.round, tensors, [coded.digest] if coded is not None else [])
+            return out
+
+    @staticmethod
+    def _digest(held: tuple[int, dict[str, np.ndarray], list[str]]) -> str:
+        if not held[2]:  # computed once, and only when a delta names it
+            held[2].append(theta_digest(held[1]))
+        return held[2][0]
+
+
+class SnapshotEncoder:
+    """Sender side: the frames of one snapshot, and the public copy ``x_hat`` its deltas start from.
+
+    ``encode`` returns (push, full): the frame for the neighbours, and the lossless float32 frame
+    of what they hold after it, served as ``latest`` to whoever lacks the base. The first frame
+    of a delta mode, without a base yet, is a full one.
+    """
+
+    def __init__(self, cfg: CompressionConfig) -> None:
+        self.cfg = cfg
+        self._public: tuple[int, str, dict[str, np.ndarray]] | None = None  # (round, digest, x_hat)
+
+    def seed(self, tensors: Mapping[str, np.ndarray]) -> None:
+        """Start from a base every receiver holds (theta^0, see :meth:`BaseBook.seed`)."""
+        copy = {n: np.array(t, dtype=np.float32) for n, t in tensors.items()}
+        self._public = (_NO_BASE, theta_digest(copy), copy)
+
+    def public(self) -> tuple[int, str] | None:
+        """(round, digest) of ``x_hat``, what every receiver up to date holds of us (delta modes)."""
+        if self._public is None:
+            return None
+        return self._public[0], self._public[1] or theta_digest(self._public[2])
+
+    def encode(self, msg: ThetaSnapshot, spec: ModelSpec, compression: str, wire_dtype: str = "float32"
+               ) -> tuple[bytes, bytes]:
+        from protocol import codec  # codec imports this module for its checks
+
+        mode = self.cfg.compression
+        if mode in ("none", "fp16"):
+            data = codec.encode(msg, wire_dtype="float16" if mode == "fp16" else wire_dtype,
+                                compression=compression, spec=spec)
+            return data, data
+        if mode == "int8":
+            coded, _ = code_snapshot(msg, self.cfg, None)
+            data = codec.encode(coded, compression=compression, spec=spec)
+            return data, data
+        if self._public is None:
+            full = codec.encode(msg, compression=compression, spec=spec)
+            tensors = {n: np.array(t, dtype=np.float32) for n, t in msg.tensors.items()}
+            self._public = (msg.round, "", tensors)
+            return full, full
+        base_round, digest, x_hat = self._public
+        coded, recon = code_snapshot(msg, self.cfg, (base_round, digest or theta_digest(x_hat), x_hat))
+        push = codec.encode(coded, compression=compression, spec=spec)
+        full = codec.encode(ThetaSnapshot(msg.swarm, msg.sender, msg.round, msg.epoch, msg.signature, recon),
+                            compression=compression, spec=spec)
+        self._public = (msg.round, coded.coded.digest, recon)
+        return push, full
