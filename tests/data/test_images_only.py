@@ -129,8 +129,8 @@ def test_evaluation_in_calibrated_sfm_frames(views):
     off[:3, 3] = torch.tensor([0.1, 0.0, 0.0], dtype=torch.float64)  # world units, applied in the world
     estimate = sfm[1] @ off @ ev.T_world_from_local[2]
     trainer = SimpleNamespace(
-        evaluate=lambda v, frame, with_ssim: {"psnr": [20.0] * len(v), "ssim": [0.5] * len(v)},
-        pose=SimpleNamespace(matrix=lambda: estimate.float()),
+        evaluate=lambda v, frame, with_ssim, appearance: {"psnr": [20.0] * len(v), "ssim": [0.5] * len(v)},
+        pose=SimpleNamespace(matrix=lambda: estimate.float()), appearance_for=lambda c2w: None,
     )
     err = evaluate_robot(trainer, ev, 2).pose
     assert err["translation"] == pytest.approx(0.1, rel=1e-3)
@@ -145,8 +145,9 @@ def test_known_frames_are_unchanged_by_the_world_unit_pose_error(views):
     truth = ev.T_shared_from_local(2)
     estimate = truth.clone()
     estimate[:3, 3] += torch.tensor([0.0, 0.2, 0.0], dtype=torch.float64)
-    trainer = SimpleNamespace(evaluate=lambda v, frame, with_ssim: {"psnr": [1.0] * len(v), "ssim": [1.0] * len(v)},
-                              pose=SimpleNamespace(matrix=lambda: estimate.float()))
+    trainer = SimpleNamespace(evaluate=lambda v, frame, with_ssim, appearance: {"psnr": [1.0] * len(v),
+                                                                               "ssim": [1.0] * len(v)},
+                              pose=SimpleNamespace(matrix=lambda: estimate.float()), appearance_for=lambda c2w: None)
     err = evaluate_robot(trainer, ev, 2).pose
     assert err == pytest.approx(pose_error(estimate, truth), abs=1e-5)
 
@@ -168,9 +169,10 @@ def test_held_out_views_are_seen_through_the_camera_that_built_the_frame(views):
     assert torch.allclose(k[:, :2], 0.98 * truth_k[:, :2]) and torch.equal(k[:, 2:], truth_k[:, 2:])
     assert torch.allclose(ev.shared_intrinsics(camera_of=2)[:, :2], 0.95 * truth_k[:, :2])
     seen = []
-    trainer = SimpleNamespace(evaluate=lambda v, frame, with_ssim: seen.append(v.intrinsics) or
+    trainer = SimpleNamespace(evaluate=lambda v, frame, with_ssim, appearance: seen.append(v.intrinsics) or
                               {"psnr": [1.0] * len(v), "ssim": [1.0] * len(v)},
-                              pose=SimpleNamespace(matrix=lambda: ev.T_shared_from_local(2).float()))
+                              pose=SimpleNamespace(matrix=lambda: ev.T_shared_from_local(2).float()),
+                              appearance_for=lambda c2w: None)
     out = evaluate_robot(trainer, ev, 2, compare_true_intrinsics=True)
     assert torch.equal(seen[0], k) and torch.equal(seen[1], truth_k) and out.psnr_true_intrinsics is not None
     known = EvalSet.from_split(split_views(views, SplitConfig(robots=2, frame="offset")))
