@@ -53,7 +53,7 @@ def render(
     threads: int = typer.Option(2, help="CPU threads for torch."),
 ) -> None:
     """Render colour and depth along an orbit/spiral or given cameras: PNGs and a GIF/MP4."""
-    from agent.outputs.paths import OrbitConfig, orbit_poses, path_intrinsics
+    from agent.outputs.paths import OrbitConfig, trainer_orbit
     from agent.outputs.render import VIDEO_FORMATS, render_views, write_renders
 
     if cameras is not None and orbit is not None:
@@ -72,10 +72,7 @@ def render(
     else:
         cfg = _checked(lambda: OrbitConfig(frames=60 if orbit is None else orbit, elevation_deg=elevation,
                                            radius=radius, spiral_deg=spiral), "orbit")
-        own = trainer.cameras_shared().detach().cpu()
-        c2w = orbit_poses(own, trainer.box_from_shared, cfg)
-        k1, w, h = path_intrinsics(trainer.camera_intrinsics().detach().cpu(), trainer.views.width, trainer.views.height, width)
-        k = k1.expand(len(c2w), 4)
+        c2w, k, w, h = trainer_orbit(trainer, cfg, width)
     with progress_bar() as bar:
         task = bar.add_task(f"robot {rid}: rendering", total=len(c2w))
         views = render_views(trainer, c2w, k, w, h, on_view=lambda n: bar.update(task, completed=n))

@@ -18,7 +18,7 @@ from agent.config_io import InvalidValue, check
 from agent.data.capture import mean_up
 from agent.geometry import sim3_decompose, sim3_inverse
 
-__all__ = ["OrbitConfig", "look_at", "box_centre", "orbit_poses", "path_intrinsics"]
+__all__ = ["OrbitConfig", "look_at", "box_centre", "orbit_poses", "path_intrinsics", "trainer_orbit"]
 
 
 @dataclass
@@ -94,3 +94,14 @@ def path_intrinsics(intrinsics: Tensor, width: int, height: int, out_width: int 
     w, h = max(round(width * scale), 1), max(round(height * scale), 1)
     f = intrinsics[:, :2].double().median(dim=0).values * scale
     return torch.tensor([float(f[0]), float(f[1]), w / 2, h / 2]), w, h
+
+
+def trainer_orbit(trainer, cfg: OrbitConfig, out_width: int | None) -> tuple[Tensor, Tensor, int, int]:
+    """The orbit around a robot's field box, from its own cameras and focal length (``agent.trainer.RobotTrainer``).
+
+    -> (c2w [N, 4, 4] shared frame, intrinsics [N, 4], width, height)"""
+    own = trainer.cameras_shared().detach().cpu()
+    c2w = orbit_poses(own, trainer.box_from_shared, cfg)
+    k, w, h = path_intrinsics(trainer.camera_intrinsics().detach().cpu(), trainer.views.width, trainer.views.height,
+                              out_width)
+    return c2w, k.expand(len(c2w), 4), w, h

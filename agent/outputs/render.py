@@ -18,7 +18,8 @@ from torch import Tensor
 from agent.data.folder import write_png
 from agent.trainer import RobotTrainer
 
-__all__ = ["RenderedViews", "render_views", "depth_colours", "write_renders", "VIDEO_FORMATS"]
+__all__ = ["RenderedViews", "render_views", "depth_colours", "video_frames", "write_video", "write_frames", "write_renders",
+           "VIDEO_FORMATS"]
 
 VIDEO_FORMATS = ("gif", "mp4", "none")
 
@@ -60,7 +61,7 @@ def depth_colours(depth: np.ndarray, opacity: np.ndarray) -> np.ndarray:
     return colour * a + (1 - a)
 
 
-def _video_frames(views: RenderedViews) -> list[np.ndarray]:
+def video_frames(views: RenderedViews) -> list[np.ndarray]:
     """Colour | depth side by side, 8-bit, padded to even sizes (H.264 needs them)."""
     side = np.concatenate([views.rgb, depth_colours(views.depth, views.opacity)], axis=2)  # [N, H, 2W, 3]
     q = np.round(np.clip(side, 0, 1) * 255).astype(np.uint8)
@@ -71,13 +72,18 @@ def _video_frames(views: RenderedViews) -> list[np.ndarray]:
 
 
 def write_video(path: Path, views: RenderedViews, fps: float) -> None:
+    """Colour | depth side by side, as a GIF or (any other suffix) an H.264 MP4."""
+    write_frames(path, np.stack(video_frames(views)), fps)
+
+
+def write_frames(path: Path, frames: np.ndarray, fps: float) -> None:
+    """8-bit frames [N, H, W, 3] (even H and W for an MP4) as a looping GIF or an MP4, by ``path``'s suffix."""
     import imageio.v3 as iio
 
-    frames = _video_frames(views)
     if path.suffix == ".gif":
-        iio.imwrite(path, np.stack(frames), extension=".gif", duration=1000.0 / fps, loop=0)
+        iio.imwrite(path, frames, extension=".gif", duration=1000.0 / fps, loop=0)
     else:
-        iio.imwrite(path, np.stack(frames), plugin="FFMPEG", fps=fps, codec="libx264", macro_block_size=2,
+        iio.imwrite(path, frames, plugin="FFMPEG", fps=fps, codec="libx264", macro_block_size=2,
                     ffmpeg_log_level="error")
 
 

@@ -11,7 +11,7 @@ reported with the results, since it bounds how exactly they can be measured.
 
 This module adds what the run recorded (telemetry: loss, bytes per link, seconds per step and
 waiting; ``run.json``: the faults applied and when) and writes ``report.json``, ``report.md``,
-``convergence.png`` and ``renders.png`` into the run folder.
+``convergence.png``, ``renders.png`` and ``orbit.gif`` into the run folder (``cli.scenario.figures``).
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from agent.files import read_json
 from agent.metrics import finite_mean
 from agent.telemetry import RoundRecord, read_telemetry
 from cli.config import from_dict
+from cli.scenario.figures import plot_convergence, poses_known, render_sheet, write_orbit
 from cli.scenario.spec import ScenarioSpec
 
 __all__ = ["build_report", "load_run_spec"]
@@ -89,16 +90,30 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
     if baselines is not None:
         report["baseline"] = baselines.to_dict()
     report["summary"] = summarise(scores, baselines).to_dict()
+    report["figures"] = _figures(report, scores, spec, out, baselines, log)
     report["seconds_report"] = time.monotonic() - t0
-
-    _plots(report, spec.ids, out / "convergence.png")
-    _render_sheet(scores.finals, scores.evalset, spec, out / "renders.png",
-                  baselines.centralised.trainer if baselines is not None else None)
     report = _nan_to_none(report)
     (out / "report.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
     (out / "report.md").write_text(_markdown(report, spec, spec.ids))
     log(f"wrote {out / 'report.md'} ({report['seconds_report']:.0f} s)")
     return report
+
+
+def _figures(report: dict, scores: RunScores, spec: ScenarioSpec, out: Path, baselines: Baselines | None,
+             log: Callable[[str], None]) -> dict:
+    """convergence.png, renders.png and orbit.gif; what each shows (report.json's "figures")."""
+    known = poses_known(spec)
+    doc = {"poses_known": known,
+           "convergence": plot_convergence(report, spec.ids, out / "convergence.png", show_pose=not known)}
+    render_sheet(scores.finals, scores.evalset, spec, out / "renders.png",
+                 baselines.centralised.trainer if baselines is not None else None)
+    if spec.report.orbit_frames and scores.finals:
+        ref = spec.reference_id if spec.reference_id in scores.finals else min(scores.finals)
+        models = scores.finals if spec.report.orbit_all_robots else {ref: scores.finals[ref]}
+        orbit = write_orbit(models, ref, spec.report.orbit_frames, scores.evalset.views.width, out / "orbit.gif")
+        log(f"orbit: {orbit['frames']} frames of robots {orbit['robots']} ({orbit['seconds']:.1f} s)")
+        doc["orbit"] = orbit
+    return doc
 
 
 def _baselines(spec: ScenarioSpec, run: SwarmRun, echo: Callable[[str], None]) -> Baselines:
@@ -181,90 +196,6 @@ def _links_bytes(telemetry: dict[int, list[RoundRecord]]) -> dict[str, int]:
 
 
 # --------------------------------------------------------------------------------------------
-# Pictures
-# --------------------------------------------------------------------------------------------
-
-
-def _plots(report: dict, ids: list[int], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    panels = [("psnr", "PSNR, all held-out views (dB)"), ("psnr_others_only", "PSNR, views only others saw (dB)"),
-              ("disagreement", "consensus disagreement"), ("rotation_error_deg", "rotation error (deg)"),
-              ("translation_error", "translation error (scene units)"), ("loss", "training loss")]
-    fig, axes = plt.subplots(2, 3, figsize=(15, 8))
-    for ax, (key, title) in zip(axes.flat, panels):
-        for i in ids:
-            rounds = report["robots"][str(i)]["rounds"]
-            xs = [int(k) for k, v in rounds.items() if isinstance(v.get(key), (int, float)) and not math.isnan(v[key])]
-            ys = [rounds[str(k)][key] for k in xs]
-            if xs:
-                ax.plot(xs, ys, marker="o", ms=3, label=f"robot {i}")
-        b = report.get("baseline")
-        if b and key == "psnr":
-            ax.axhline(b["centralised"]["psnr"], color="k", ls="--", label="centralised")
-        if b and "alone" in b and key in ("psnr", "psnr_others_only"):
-            for n, i in enumerate(ids):
-                v = b["alone"][str(i)].get(key)
-                if v is not None and not math.isnan(v):
-                    ax.axhline(v, color=f"C{n}", ls=":", lw=1, label=f"robot {i} alone" if key == "psnr_others_only" else None)
-        for f in report.get("faults", []):
-            ax.axvline(f.get("swarm_round", 0), color="red", alpha=0.3, lw=1)
-        if key in ("disagreement", "loss"):
-            ax.set_yscale("log")
-        ax.set_title(title)
-        ax.set_xlabel("round")
-        ax.grid(alpha=0.3)
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=7)
-    fig.suptitle(f"{report['scenario']}: convergence (red lines: faults)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-
-
-def _render_sheet(finals: dict, evalset, spec: ScenarioSpec, path: Path, baseline_trainer=None) -> None:
-    """Rows: ground truth, [centralised], each robot (its final model, in the shared frame); columns: views."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import torch
-
-    n = min(spec.report.render_views, len(evalset.views))
-    if n == 0 or not finals:
-        return
-    m = len(evalset.views)
-    idx = sorted({round(j * m / n) % m for j in range(n)})
-    gt = evalset.views.rgb(1.0)
-    cams = evalset.shared_cameras()
-    w, h = evalset.views.width, evalset.views.height
-    rows: list[tuple[str, list]] = [("truth", [gt[j].numpy() for j in idx])]
-    with torch.no_grad():
-        if baseline_trainer is not None:
-            rows.append(("centralised", [baseline_trainer.render(evalset.views.c2w[j], evalset.views.intrinsics[j], w, h)["rgb"].cpu().numpy() for j in idx]))
-        for i in sorted(finals):
-            rows.append((f"robot {i}", [finals[i].render(cams[j], evalset.views.intrinsics[j], w, h)["rgb"].cpu().numpy() for j in idx]))
-    fig, axes = plt.subplots(len(rows), len(idx), figsize=(2.2 * len(idx), 2.2 * len(rows)), squeeze=False)
-    for r, (label, imgs) in enumerate(rows):
-        for c, img in enumerate(imgs):
-            ax = axes[r][c]
-            ax.imshow(img.clip(0, 1))
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if c == 0:
-                ax.set_ylabel(label)
-            if r == 0:
-                seen = evalset.seen_by[idx[c]]
-                ax.set_title(f"{evalset.views.names[idx[c]]}\nseen by {seen or 'nobody'}", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-
-
-# --------------------------------------------------------------------------------------------
 # Markdown
 # --------------------------------------------------------------------------------------------
 
@@ -277,9 +208,25 @@ def _markdown(report: dict, spec: ScenarioSpec, ids: list[int]) -> str:
     sections = (_md_header(report, spec), _md_finals(report, ids), _md_final_extras(report, spec, ids),
                 _md_calibration(report, ids), _md_comparison(report, spec, ids), _md_faults(report),
                 _md_links(report))
-    figures = ["## Convergence", "", "![convergence](convergence.png)", "", "## Renders (held-out views, shared frame)",
-               "", "![renders](renders.png)", ""]
-    return "\n".join([line for lines in sections for line in lines] + figures)
+    return "\n".join([line for lines in sections + (_md_figures(report),) for line in lines])
+
+
+def _md_figures(report: dict) -> list[str]:
+    figs = report.get("figures") or {}
+    lines = ["## Convergence", ""]
+    if figs.get("poses_known"):
+        lines += ["The poses are known (shared frame, fixed at the identity): no pose panels.", ""]
+    lines += ["![convergence](convergence.png)", "", "## Renders (held-out views, shared frame)", "",
+              "![renders](renders.png)", ""]
+    orbit = figs.get("orbit")
+    if orbit:
+        who = (f"robots {', '.join(map(str, orbit['robots']))}" if len(orbit["robots"]) > 1
+               else f"robot {orbit['robots'][0]}")
+        lines += ["## Orbit (final models, shared frame)", "",
+                  f"The final model of {who} along one orbit of robot {orbit['orbit_of']}'s cameras "
+                  f"({orbit['frames']} frames at {orbit['render_size'][1]}x{orbit['render_size'][0]}): colour | depth.",
+                  "", "![orbit](orbit.gif)", ""]
+    return lines
 
 
 def _md_header(report: dict, spec: ScenarioSpec) -> list[str]:

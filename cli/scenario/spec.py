@@ -40,6 +40,8 @@ error that names it. Example (every table but ``[scenario]`` is optional)::
     enabled = true                             # also train the centralised model and each robot alone
     [report]
     eval_every = 1                             # evaluate rounds/<k>.safetensors every k-th round
+    orbit_frames = 36                          # orbit.gif of the reference's final model (0 = none)
+    # orbit_all_robots = true                  # ... and of every other robot's, side by side
     [run]
     mode = "local"                             # or netns (root); timeout_s = 600 ...
 
@@ -211,12 +213,16 @@ class ReportSpec:
     # (refined) cameras: well below what the robot reaches alone, the shared field cannot hold its
     # views (cameras that disagree, a box that clips the scene). 0 = off.
     own_views_every: int = 4
+    # orbit.gif: the reference's final model along an orbit of this many frames at the held-out
+    # views' width (~3 s of CPU for 36 frames at 48 px), or every robot's side by side. 0 = none.
+    orbit_frames: int = 36
+    orbit_all_robots: bool = False
 
     def __post_init__(self) -> None:
         if (self.eval_every < 1 or self.render_views < 0 or self.threads < 1 or self.fit_heldout_poses_steps < 0
-                or self.own_views_every < 0):
+                or self.own_views_every < 0 or self.orbit_frames < 0):
             raise ValueError("report: eval_every >= 1, render_views >= 0, threads >= 1, fit_heldout_poses_steps >= 0, "
-                             "own_views_every >= 0")
+                             "own_views_every >= 0, orbit_frames >= 0")
 
 
 @dataclass

@@ -305,3 +305,12 @@ def test_bad_input_is_one_line(run, tmp_path):
     raw[-100] ^= 0xFF
     (old / "checkpoint.safetensors").write_bytes(bytes(raw))
     assert "checksum" in fails("export", str(old), "--out", str(tmp_path / "y"), "--data", str(run / "data" / "robot1"))
+
+
+def test_the_scenario_report_has_an_orbit_and_no_pose_panels_for_known_poses(run):
+    """The run's own report (frames "world", the pose fixed): orbit.gif of both robots, no pose panels."""
+    from tests.scenarios.report_checks import check_figures
+
+    report = json.loads((run / "report.json").read_text())
+    check_figures(run, report, orbit_frames=36, pose_panels=False, all_robots=False)  # the defaults
+    assert [int(k) for k in report["figures"]["convergence"]["points"]["psnr"]["1"]] == [3]  # eval_every = 100: the last

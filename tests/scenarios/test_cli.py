@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.scenarios.report_checks import check_figures, scored_rounds
+
 ROOT = Path(__file__).resolve().parents[2]
 ENTRY = "import sys; sys.argv[0] = 'dinerf-agent'; from cli.main import main; main()"
 
@@ -46,6 +48,8 @@ enabled = true
 [report]
 ssim = false
 render_views = 2
+orbit_frames = 12
+orbit_all_robots = true
 """
 
 
@@ -90,7 +94,9 @@ def test_tiny_run_on_loopback_writes_the_report(tmp_path):
     scen = tmp_path / "scenario.toml"
     scen.write_text(TINY)
     out = tmp_path / "out"
-    p = agent("scenario", "run", str(scen), "--out", "out", cwd=tmp_path)  # relative, as in the README
+    # the pose learnt (SE(3) from the identity) although the frames are shared: its error is measured, so plotted
+    p = agent("scenario", "run", str(scen), "--out", "out", "--set", "training.train.pose.mode=se3",
+              cwd=tmp_path)  # relative, as in the README
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     assert "completed: all robots finished" in p.stdout
     report = json.loads((out / "report.json").read_text())
@@ -105,5 +111,7 @@ def test_tiny_run_on_loopback_writes_the_report(tmp_path):
     assert "| robot | round | PSNR all" in md and "Centralised model" in md and "Fit of each robot's own training views" in md
     for png in ("convergence.png", "renders.png"):
         assert (out / png).read_bytes()[:4] == b"\x89PNG"
+    check_figures(out, report, orbit_frames=12, pose_panels=True, all_robots=True)
+    assert scored_rounds(report, "1") == [1, 2, 3]  # eval_every = 1: every round
     again = agent("scenario", "run", str(scen), "--out", str(out))
     assert "--force" in one_line_error(again)

@@ -120,3 +120,15 @@ def test_shipped_scenarios_are_valid():
         assert s.name == folder.name
         if s.faults.needs_netns:
             assert s.run.mode == "netns", f"{folder.name}: link faults need run.mode = netns"
+
+
+@pytest.mark.parametrize("extra, known", [
+    ('[split]\nframe = "world"\n', True),  # shared frames, the pose fixed at the identity
+    ('[split]\nframe = "world"\n[training.train.pose]\nmode = "se3"\n', False),  # learnt: its error is measured
+    ('[split]\nframe = "offset"\n', False),  # local frames: a coarse start, then learnt
+])
+def test_pose_panels_only_where_the_pose_is_measured(tmp_path, extra, known):
+    from cli.scenario.figures import poses_known
+
+    assert poses_known(load_scenario(write(tmp_path, extra))) is known
+    assert "orbit_frames" in error(tmp_path, "[report]\norbit_frames = -1\n")
