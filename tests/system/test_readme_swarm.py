@@ -59,7 +59,7 @@ def test_the_readme_swarm_by_hand_ends_aligned_or_names_the_unaligned_robot(tmp_
                                  capture_output=True, text=True, timeout=60)
             if out.returncode == 0 and out.stdout.strip():
                 seen_status.append(json.loads(out.stdout))
-            time.sleep(10)
+            time.sleep(30)  # each status call is a process of its own: keep the cores for the robots
         codes = {i: p.wait() for i, p in procs.items()}
     finally:
         for p in procs.values():
