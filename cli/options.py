@@ -70,9 +70,9 @@ class _RichListener:
         self.progress.advance(task)
 
     def end(self, task: object) -> None:
-        t = self.progress.tasks[[x.id for x in self.progress.tasks].index(task)]
-        self.progress.update(task, total=t.completed if t.total is None else t.total,
-                             completed=t.completed if t.total is None else t.total)
+        t = next(x for x in self.progress.tasks if x.id == task)
+        done = t.completed if t.total is None else t.total  # a spinner ends full, at what it did
+        self.progress.update(task, total=done, completed=done)
 
 
 @contextlib.contextmanager
