@@ -11,20 +11,19 @@ for the weights.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from tests.agent_cli import agent as run_agent
+
 pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[2]
-ENTRY = "import sys; sys.argv[0] = 'dinerf-agent'; from cli.main import main; main()"
 
 TINY = """
 [scenario]
@@ -66,9 +65,7 @@ eval_every = 100
 
 
 def agent(*args: str, cwd: Path = ROOT, timeout: float = 240) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "COLUMNS": "200"}
-    return subprocess.run([sys.executable, "-c", ENTRY, *args], capture_output=True, text=True, cwd=cwd,
-                          timeout=timeout, env=env)
+    return run_agent(*args, cwd=cwd, timeout=timeout, env={"OMP_NUM_THREADS": "1", "COLUMNS": "200"})
 
 
 def ok(p: subprocess.CompletedProcess) -> str:

@@ -2,18 +2,16 @@
 
 from __future__ import annotations
 
-import os
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
+from tests.agent_cli import agent
 from tests.scenarios.report_checks import check_figures, scored_rounds
 
 ROOT = Path(__file__).resolve().parents[2]
-ENTRY = "import sys; sys.argv[0] = 'dinerf-agent'; from cli.main import main; main()"
 
 TINY = """
 [scenario]
@@ -51,12 +49,6 @@ render_views = 2
 orbit_frames = 12
 orbit_all_robots = true
 """
-
-
-def agent(*args: str, timeout: float = 300, cwd: Path = ROOT) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run([sys.executable, "-c", ENTRY, *args], capture_output=True, text=True, cwd=cwd, timeout=timeout,
-                          env=env)
 
 
 def one_line_error(p: subprocess.CompletedProcess) -> str:
