@@ -27,7 +27,8 @@ class ConsensusConfig:
     entry's data gradient is ~1e-5; a penalty gradient 2 rho (theta - a) above that pins every
     robot to the round's anchors and learning stops (docs/results.md). With
     rho ~ 1e-5 the data term leads where a robot has data, and entries it never sees still
-    follow its neighbours (Adam's steps do not depend on the gradient's scale).
+    follow its neighbours (Adam's steps do not depend on the gradient's scale). The best value
+    depends on the scene and field (the quickstart's is 3e-6): sweep it, as docs/results.md does.
     """
 
     rho0: float = 1e-5
