@@ -71,6 +71,8 @@ def main() -> None:
     ap.add_argument("--field-log2", type=int, default=14, help="log2 hash-table size per level")
     ap.add_argument("--modes", default=",".join(MODES))
     ap.add_argument("--topk-fraction", type=float, default=0.05)
+    ap.add_argument("--long-rounds", type=int, default=0,
+                    help="also run float32 with this many (longer) rounds at the same total steps (0 = not)")
     ap.add_argument("--rate-mbit", type=float, default=20.0, help="link rate the push times are quoted at")
     ap.add_argument("--set", action="append", default=[], help="TrainConfig override, e.g. rays_per_step=512")
     ap.add_argument("--threads", type=int, default=2)
@@ -93,19 +95,38 @@ def main() -> None:
     results: dict = {"args": {k: str(v) for k, v in vars(args).items()}, "modes": {}}
     for mode in args.modes.split(","):
         r = results["modes"][mode] = run_mode(mode, split, neighbours, cfg, args.topk_fraction, ev)
-        print(f"  {mode:10s} PSNR {r['psnr']:.2f} dB, others-only {r['psnr_others']:.2f} dB | "
-              f"{r['bytes_per_link_round'] / 1e6:.4f} MB per link per round, ratio {r['ratio']:.4f} "
-              f"({r['seconds']:.0f} s)", flush=True)
+        _print_mode(mode, r)
+    if args.long_rounds:
+        total = args.rounds * args.steps
+        if total % args.long_rounds:
+            raise SystemExit(f"--long-rounds {args.long_rounds} does not divide {total} steps")
+        long_cfg = dataclasses.replace(cfg, rounds=args.long_rounds, steps_per_round=total // args.long_rounds)
+        name = f"none@{args.long_rounds}x{total // args.long_rounds}"
+        r = results["modes"][name] = run_mode("none", split, neighbours, long_cfg, args.topk_fraction, ev)
+        r["pushes_per_link"] = args.long_rounds
+        _print_mode(name, r)
+    _print_summary(results, args)
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2, default=str) + "\n")
+
+
+def _print_mode(mode: str, r: dict) -> None:
+    print(f"  {mode:10s} PSNR {r['psnr']:.2f} dB, others-only {r['psnr_others']:.2f} dB | "
+          f"{r['bytes_per_link_round'] / 1e6:.4f} MB per link per round, ratio {r['ratio']:.4f} "
+          f"({r['seconds']:.0f} s)", flush=True)
+
+
+def _print_summary(results: dict, args) -> None:
+    """PSNR against float32, bytes per push and per whole run (a run of fewer rounds pushes less often)."""
     ref = results["modes"].get("none")
     print(f"\nsummary (PSNR all / others-only, difference to float32; bytes per link per round; "
-          f"one push at {args.rate_mbit:g} Mbit/s):")
+          f"one push at {args.rate_mbit:g} Mbit/s; MB per link over the run):")
     for mode, r in results["modes"].items():
         diff = f" ({r['psnr'] - ref['psnr']:+.2f} / {r['psnr_others'] - ref['psnr_others']:+.2f})" if ref else ""
         push_s = r["bytes_per_link_round"] * 8 / (args.rate_mbit * 1e6)
         print(f"  {mode:10s} {r['psnr']:6.2f} / {r['psnr_others']:6.2f} dB{diff}  {r['bytes_per_link_round']:>11,.0f} B"
-              f"  1/{1 / r['ratio']:6.1f} of float32  {push_s:7.3f} s")
-    if args.json:
-        args.json.write_text(json.dumps(results, indent=2, default=str) + "\n")
+              f"  1/{1 / r['ratio']:6.1f} of float32  {push_s:7.3f} s"
+              f"  {r['bytes_per_link_round'] * r.get('pushes_per_link', args.rounds) / 1e6:9.1f} MB")
 
 
 if __name__ == "__main__":
