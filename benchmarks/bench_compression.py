@@ -11,6 +11,9 @@ raw float32 snapshot; the seconds are what one push takes on a link of ``--rate-
     nice .venv/bin/python benchmarks/bench_compression.py --data ../shared/data/nerf_synthetic/lego \\
         --width 100 --robots 5 --topology ring --rounds 80 --steps 25 --field-log2 17    # the issue's setting
 
+``--frame first_camera`` gives each robot its own frame: poses start from the coarse alignment
+and are learnt (the paper's unknown-pose setting); the worst pose error is printed per mode.
+
 ``--json FILE`` keeps every figure.
 """
 
@@ -28,8 +31,10 @@ import torch
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
 
 from agent.data.loaders import load_views  # noqa: E402
+from bench_consensus import coarse_initial_poses  # noqa: E402
 from agent.data.split import SplitConfig, split_views  # noqa: E402
 from agent.evaluation import EvalSet, evaluate_robot  # noqa: E402
 from agent.swarm import ProtocolWire, Simulation, SwarmTrainingConfig  # noqa: E402
@@ -39,11 +44,12 @@ from protocol.compression import MODES, CompressionConfig  # noqa: E402
 from protocol.membership import Topology  # noqa: E402
 
 
-def run_mode(mode: str, split, neighbours, cfg: SwarmTrainingConfig, topk: float, ev: EvalSet) -> dict:
+def run_mode(mode: str, split, neighbours, cfg: SwarmTrainingConfig, topk: float, ev: EvalSet,
+             initial: dict | None = None) -> dict:
     """Train the swarm with snapshots in ``mode``; scores per robot and bytes per push."""
     t0 = time.time()
     robots = {i: r.views for i, r in split.robots.items()}
-    sim = Simulation(robots, neighbours, split.box_from_shared, cfg)
+    sim = Simulation(robots, neighbours, split.box_from_shared, cfg, initial_poses=initial)
     sim.wire = ProtocolWire(CompressionConfig(compression=mode, topk_fraction=topk),
                             next(iter(sim.thetas.values())), sorted(robots))
     sim.run()
@@ -53,7 +59,10 @@ def run_mode(mode: str, split, neighbours, cfg: SwarmTrainingConfig, topk: float
     return {
         "psnr": statistics.fmean(s["psnr"] for s in scores.values()),
         "psnr_others": statistics.fmean(s["psnr_others_only"] for s in scores.values()),
-        "robots": {i: {"psnr": s["psnr"], "psnr_others_only": s["psnr_others_only"]} for i, s in scores.items()},
+        "robots": {i: {k: s[k] for k in ("psnr", "psnr_others_only", "pose_rotation_deg", "pose_translation")}
+                   for i, s in scores.items()},
+        "worst_rotation_deg": max(s["pose_rotation_deg"] for s in scores.values()),
+        "worst_translation": max(s["pose_translation"] for s in scores.values()),
         "bytes_per_link_round": statistics.fmean(pushes), "raw_float32_bytes": raw,
         "ratio": statistics.fmean(pushes) / raw, "seconds": time.time() - t0,
     }
@@ -66,6 +75,9 @@ def main() -> None:
     ap.add_argument("--robots", type=int, default=3)
     ap.add_argument("--overlap", type=float, default=0.2)
     ap.add_argument("--topology", default="ring")
+    ap.add_argument("--frame", default="world",
+                    help="robots' local frames: world (known poses) or a split frame kind such as first_camera "
+                         "(unknown poses: coarse alignment, then se3 poses learnt as in bench_consensus)")
     ap.add_argument("--rounds", type=int, default=16)
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--field-log2", type=int, default=14, help="log2 hash-table size per level")
@@ -85,16 +97,21 @@ def main() -> None:
     train = apply_overrides(TrainConfig(), [f"field.grid.log2_hashmap_size={args.field_log2}", *args.set])
     cfg = SwarmTrainingConfig(rounds=args.rounds, steps_per_round=args.steps, seed=args.seed, own_holdout_every=0,
                               train=train)
-    split = split_views(views, SplitConfig(robots=args.robots, overlap=args.overlap, frame="world", seed=args.seed))
+    split = split_views(views, SplitConfig(robots=args.robots, overlap=args.overlap, frame=args.frame, seed=args.seed))
     ev = EvalSet.from_split(split)
     ids = sorted(split.robots)
     topo = Topology.from_spec(args.topology, ids)
     neighbours = {i: topo.neighbours(i) for i in ids}
+    initial = None
+    if args.frame != "world":
+        initial, report = coarse_initial_poses({i: r.views for i, r in split.robots.items()}, ids[0], neighbours)
+        cfg = dataclasses.replace(cfg, train=dataclasses.replace(train, pose=dataclasses.replace(train.pose, mode="se3")))
+        print(f"coarse alignment: {report['pairs']}", flush=True)
     print(f"{args.data} at {views.width}x{views.height}: {len(ids)} robots on a {args.topology}, {args.rounds} rounds x "
           f"{args.steps} steps, log2 table {args.field_log2}; {len(ev.views)} held-out views", flush=True)
     results: dict = {"args": {k: str(v) for k, v in vars(args).items()}, "modes": {}}
     for mode in args.modes.split(","):
-        r = results["modes"][mode] = run_mode(mode, split, neighbours, cfg, args.topk_fraction, ev)
+        r = results["modes"][mode] = run_mode(mode, split, neighbours, cfg, args.topk_fraction, ev, initial)
         _print_mode(mode, r)
     if args.long_rounds:
         total = args.rounds * args.steps
@@ -102,7 +119,7 @@ def main() -> None:
             raise SystemExit(f"--long-rounds {args.long_rounds} does not divide {total} steps")
         long_cfg = dataclasses.replace(cfg, rounds=args.long_rounds, steps_per_round=total // args.long_rounds)
         name = f"none@{args.long_rounds}x{total // args.long_rounds}"
-        r = results["modes"][name] = run_mode("none", split, neighbours, long_cfg, args.topk_fraction, ev)
+        r = results["modes"][name] = run_mode("none", split, neighbours, long_cfg, args.topk_fraction, ev, initial)
         r["pushes_per_link"] = args.long_rounds
         _print_mode(name, r)
     _print_summary(results, args)
@@ -113,7 +130,8 @@ def main() -> None:
 def _print_mode(mode: str, r: dict) -> None:
     print(f"  {mode:10s} PSNR {r['psnr']:.2f} dB, others-only {r['psnr_others']:.2f} dB | "
           f"{r['bytes_per_link_round'] / 1e6:.4f} MB per link per round, ratio {r['ratio']:.4f} "
-          f"({r['seconds']:.0f} s)", flush=True)
+          f"({r['seconds']:.0f} s), worst pose {r['worst_rotation_deg']:.3f} deg / {r['worst_translation']:.4f}",
+          flush=True)
 
 
 def _print_summary(results: dict, args) -> None:
@@ -126,7 +144,8 @@ def _print_summary(results: dict, args) -> None:
         push_s = r["bytes_per_link_round"] * 8 / (args.rate_mbit * 1e6)
         print(f"  {mode:10s} {r['psnr']:6.2f} / {r['psnr_others']:6.2f} dB{diff}  {r['bytes_per_link_round']:>11,.0f} B"
               f"  1/{1 / r['ratio']:6.1f} of float32  {push_s:7.3f} s"
-              f"  {r['bytes_per_link_round'] * r.get('pushes_per_link', args.rounds) / 1e6:9.1f} MB")
+              f"  {r['bytes_per_link_round'] * r.get('pushes_per_link', args.rounds) / 1e6:9.1f} MB"
+              + (f"  pose {r['worst_rotation_deg']:.3f} deg / {r['worst_translation']:.4f}" if args.frame != "world" else ""))
 
 
 if __name__ == "__main__":
