@@ -417,10 +417,10 @@ def check_status_body(body: Any) -> dict[str, Any]:
         raise bad("reference", "expected a robot id")
     out["reference"] = ref
     out["phase"] = text("phase")
-    try:
-        out["alignment"] = Alignment(body["alignment"])
-    except ValueError:
-        raise bad("alignment", f"expected one of {[a.value for a in Alignment]}") from None
+    state = body["alignment"]  # a str before the enum sees it: its error message reprs any value, however deep
+    if not isinstance(state, str) or state not in {a.value for a in Alignment}:
+        raise bad("alignment", f"expected one of {[a.value for a in Alignment]}")
+    out["alignment"] = Alignment(state)
     out["alignment_detail"] = text("alignment_detail")
     out["loss"] = finite_number("loss", allow_none=True)
     out["psnr"] = finite_number("psnr", allow_none=True)
