@@ -9,7 +9,8 @@ every round at float32 makes the network, not the CPU, set the pace on a slow li
 - ``int8``        every value as int8 with one float32 scale per ``chunk`` values; stateless;
 - ``delta+int8``  ``theta - base`` as int8: untouched entries are exact zeros, which zstd squeezes;
 - ``delta+topk``  only the ``topk_fraction`` largest entries of ``theta - base`` per tensor, as
-                  int8, with their indices as gaps split into byte planes (zstd packs them).
+                  int8, with their indices as gaps split into byte planes (zstd packs them);
+                  tensors up to ``topk_full_below`` entries (the MLPs) whole.
 
 **Error feedback, CHOCO-SGD style.** The sender keeps a public copy ``x_hat``: exactly what its
 receivers reconstruct. Each delta is ``theta - x_hat``, and ``x_hat`` advances by what was sent,
@@ -55,6 +56,10 @@ class CompressionConfig:
     compression: Literal["none", "fp16", "int8", "delta+int8", "delta+topk"] = "none"
     # delta+topk: the share of each tensor's entries sent per round (the rest waits, error feedback)
     topk_fraction: float = 0.05
+    # delta+topk: tensors of at most this many entries go whole (as delta+int8 would send them).
+    # These are the decoders' weights: every ray passes through them, they are ~0.3% of lego's
+    # snapshot, and sending them whole gained 0.65 dB there at 5% (docs/results.md). 0 = none.
+    topk_full_below: int = 16384
     chunk: int = 1024  # values per int8 scale: smaller follows the hash levels' ranges closer
 
     def __post_init__(self) -> None:
@@ -62,6 +67,8 @@ class CompressionConfig:
             raise ValueError(f"compression must be one of {MODES}, got {self.compression!r}")
         if not 0.0 < self.topk_fraction <= 0.5:
             raise ValueError(f"topk_fraction must be in (0, 0.5], got {self.topk_fraction!r}")
+        if not is_int(self.topk_full_below) or self.topk_full_below < 0:
+            raise ValueError(f"topk_full_below must be an integer >= 0, got {self.topk_full_below!r}")
         if not is_int(self.chunk) or not 16 <= self.chunk <= MAX_CHUNK:
             raise ValueError(f"chunk must be an integer in [16, {MAX_CHUNK}], got {self.chunk!r}")
 
@@ -121,7 +128,8 @@ def _code_tensor(mode: str, name: str, delta: np.ndarray, cfg: CompressionConfig
     if mode != "delta+topk":
         q, scale = quantise(flat, cfg.chunk)
         return [(f"{name}/q", q, "int8"), (f"{name}/scale", scale, "float32")], dequantise(q, scale, cfg.chunk)
-    k = min(math.ceil(cfg.topk_fraction * flat.size), int(np.count_nonzero(flat)))
+    share = flat.size if flat.size <= cfg.topk_full_below else math.ceil(cfg.topk_fraction * flat.size)
+    k = min(share, int(np.count_nonzero(flat)))
     index = np.sort(np.argpartition(-np.abs(flat), k - 1)[:k]) if k else np.zeros(0, np.int64)
     q, scale = quantise(flat[index], cfg.chunk)
     decoded = np.zeros_like(flat)

@@ -23,7 +23,8 @@ CHUNK = 16
 
 
 def _cfg(mode: str, fraction: float = 0.25) -> CompressionConfig:
-    return CompressionConfig(compression=mode, topk_fraction=fraction, chunk=CHUNK)
+    """Top-k on every tensor, however small (the small spec's tensors are all below the default)."""
+    return CompressionConfig(compression=mode, topk_fraction=fraction, chunk=CHUNK, topk_full_below=0)
 
 
 def _step(theta: dict[str, np.ndarray], rng: np.random.Generator, scale: float = 0.05) -> dict[str, np.ndarray]:
@@ -93,6 +94,23 @@ def test_a_delta_costs_a_fraction_of_float32_and_untouched_entries_nothing():
         enc.seed(big)
         sizes[mode] = len(enc.encode(ThetaSnapshot(SWARM, 1, 1, 0, spec.signature(), touched), spec, "zstd")[0])
     assert sizes["delta+int8"] < sizes["none"] / 20 and sizes["delta+topk"] < sizes["none"] / 20, sizes
+
+
+def test_topk_sends_small_tensors_whole_and_the_table_by_its_share():
+    """The decoders' weights go whole every round (every ray depends on them); a large table sends
+    only its share, and the receiver rebuilds both from the same frame."""
+    rng = np.random.default_rng(5)
+    theta0 = {"grid.table": rng.standard_normal((20000, 2)).astype(np.float32),
+              "mlp.0.weight": rng.standard_normal((64, 32)).astype(np.float32)}
+    spec = type(SPEC).from_tensors(theta0)
+    theta1 = _step(theta0, rng)
+    cfg = CompressionConfig(compression="delta+topk", topk_fraction=0.05, chunk=CHUNK)
+    coded, recon = code_snapshot(ThetaSnapshot(SWARM, 1, 3, 0, spec.signature(), theta1), cfg,
+                                 (2, theta_digest(theta0), theta0))
+    assert coded.coded.arrays["mlp.0.weight/q"].size == 64 * 32
+    assert coded.coded.arrays["grid.table/q"].size == 2000
+    assert np.abs(recon["mlp.0.weight"] - theta1["mlp.0.weight"]).max() < 0.02  # int8 rounding only
+    assert (recon["grid.table"] != theta0["grid.table"]).sum() == 2000
 
 
 @pytest.mark.parametrize("mode", ["delta+int8", "delta+topk"])
