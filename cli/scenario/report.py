@@ -247,6 +247,7 @@ def _md_header(report: dict, spec: ScenarioSpec) -> list[str]:
         f"{spec.training.consensus.rho0:g}, pose `{spec.training.train.pose.mode}`",
         f"- evaluation: {report['heldout_views']} held-out views of the whole scene (every "
         f"{spec.split.test_every}th); 'others only' = held-out views outside the robot's own sector",
+        *([f"- data credit: {spec.credit}"] if spec.credit else []),
         "",
     ]
     return lines + [f"- note: {note}" for note in report.get("notes", [])]

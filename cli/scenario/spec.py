@@ -8,6 +8,7 @@ error that names it. Example (every table but ``[scenario]`` is optional)::
     dataset = "procedural:views=60,width=48"   # or a path, e.g. "../shared/data/nerf_synthetic/lego"
     width = 48                                 # downscale images to this width
     robots = 3                                 # ids 1..N; robot 1 is the reference
+    # credit = "Photography: ..."              # the data's attribution, printed in the report
 
     [split]                                    # agent.data.split.SplitConfig, see there
     overlap = 0.1
@@ -243,6 +244,7 @@ class ScenarioSpec:
     width: int | None = None
     robots: int = 3  # ids 1..robots (the split's robots)
     description: str = ""
+    credit: str = ""  # the data's attribution (a CC BY capture's), printed at the top of the report
     split: SplitConfig = field(default_factory=SplitConfig)
     # the sections every robot's swarm file gets (cli.swarm_file.SwarmFile), under the same names
     topology: TopologyConfig = field(default_factory=TopologyConfig)

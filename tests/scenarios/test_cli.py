@@ -18,6 +18,7 @@ TINY = """
 name = "cli-tiny"
 dataset = "procedural:views=24,width=24"
 robots = 2
+credit = "Photography: a test"
 [split]
 overlap = 0.1
 frame = "world"
@@ -101,6 +102,7 @@ def test_tiny_run_on_loopback_writes_the_report(tmp_path):
     assert report["baseline"]["centralised"]["psnr"] > 5 and set(report["baseline"]["alone"]) == {"1", "2"}
     md = (out / "report.md").read_text()
     assert "| robot | round | PSNR all" in md and "Centralised model" in md and "Fit of each robot's own training views" in md
+    assert "- data credit: Photography: a test" in md
     for png in ("convergence.png", "renders.png"):
         assert (out / png).read_bytes()[:4] == b"\x89PNG"
     check_figures(out, report, orbit_frames=12, pose_panels=True, all_robots=True)
