@@ -212,7 +212,9 @@ def test_status_command_shows_every_robot_live(tmp_path):
 
     from agent.checkpoint import RunFolder
 
-    swarm = make_swarm(tmp_path, robots=2, topology="full", training={"rounds": 30})
+    # far more rounds than the test lasts (~0.3 s each on an idle machine): the signals must find
+    # the robots training, not already finished and exiting
+    swarm = make_swarm(tmp_path, robots=2, topology="full", training={"rounds": 2000})
     try:
         swarm.start_all()
         swarm.wait_round(1, 1)
