@@ -9,8 +9,8 @@ and at once:
   would train nothing and finish at once);
 - re-publishes every real snapshot it sees to the same receiver as copies from the far future
   (round + 3 and + 6): a barrier that trusts them stops waiting, a robot skips its training;
-- re-publishes every real snapshot under its own round with other values (a replay that
-  replaces the copy already taken in would change the model).
+- re-publishes every real snapshot under its own round with other values, ``REPLAY_DELAY_S``
+  later (a replay that replaces the copy already taken in would change the model).
 
 Without CERT_DIR the swarm under test is insecure (plain TCP) and the rogue speaks for every
 robot: this attacks the round logic. With CERT_DIR (a robot's ``tls/`` folder: a stolen but valid
@@ -36,6 +36,10 @@ from protocol import codec  # noqa: E402
 from protocol.messages import ThetaSnapshot  # noqa: E402
 
 FUTURE = (3, 6)  # rounds ahead of a real snapshot its copies claim
+# The replay goes out this long after the real snapshot was seen, so that it meets a copy already
+# taken in. In an insecure swarm a forgery that overtakes the real copy is the real copy as far as
+# anyone can tell; that is what TLS and the access control are for (tests/system/test_secure_swarm.py).
+REPLAY_DELAY_S = 0.1
 
 
 def _transport_config(listen: str, cert_dir: str | None):
@@ -110,6 +114,7 @@ def main(swarm_toml: str, duration: float, listen: str, cert_dir: str | None = N
         j, k = msg.sender, msg.round
         try:
             other = {n: a + 0.5 for n, a in msg.tensors.items()}
+            time.sleep(REPLAY_DELAY_S)
             net.publish(keys.theta(j, k, to=to), snapshot(j, k, other))
             with lock:
                 sent["replays"] += 1
