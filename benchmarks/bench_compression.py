@@ -34,7 +34,6 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 from agent.data.loaders import load_views  # noqa: E402
-from bench_consensus import coarse_initial_poses  # noqa: E402
 from agent.data.split import SplitConfig, split_views  # noqa: E402
 from agent.evaluation import EvalSet, evaluate_robot  # noqa: E402
 from agent.swarm import ProtocolWire, Simulation, SwarmTrainingConfig  # noqa: E402
@@ -42,6 +41,7 @@ from agent.trainer import TrainConfig  # noqa: E402
 from cli.config import apply_overrides  # noqa: E402
 from protocol.compression import MODES, CompressionConfig  # noqa: E402
 from protocol.membership import Topology  # noqa: E402
+from bench_consensus import coarse_initial_poses  # noqa: E402  (benchmarks/, on the path above)
 
 
 def run_mode(mode: str, split, neighbours, cfg: SwarmTrainingConfig, topk: float, ev: EvalSet,

@@ -36,11 +36,8 @@ from agent.evaluation.baselines import train_baseline  # noqa: E402
 from agent.metrics import finite_mean  # noqa: E402
 from agent.trainer import TrainConfig  # noqa: E402
 from cli.config import apply_overrides  # noqa: E402
+from cli.scenario.spec import find_scenario, load_scenario  # noqa: E402
 
-# The quickstart's field and sampler (scenarios/quickstart/scenario.toml): sized to 48 px images.
-SMALL_FIELD = ["rays_per_step=1024", "field.density_hidden=32", "field.color_hidden=32",
-               "field.grid.log2_hashmap_size=14", "field.grid.num_levels=12", "field.grid.max_resolution=256",
-               "occupancy.resolution=48", "occupancy.warmup_steps=64", "occupancy.update_every=16"]
 CASES = ("pinhole", "undistorted", "ignored")
 
 
@@ -71,7 +68,7 @@ def main() -> None:
                     help="photograph at this many times the width, undo the lens there, then downscale")
     ap.add_argument("--seeds", default="0,1", help="training seeds (sampling), one model per case and seed")
     ap.add_argument("--test-every", type=int, default=6)
-    ap.add_argument("--set", action="append", default=[], help="TrainConfig override after the small field's")
+    ap.add_argument("--set", action="append", default=[], help="TrainConfig override of the quickstart's")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
@@ -79,7 +76,9 @@ def main() -> None:
         raise SystemExit("--data must be a procedural spec without k1 (the benchmark adds the lens)")
     torch.set_num_threads(args.threads)
     truth = load_case("pinhole", args.data, args.k1, args.native_scale)
-    base = apply_overrides(TrainConfig(), [*SMALL_FIELD, f"total_steps={args.steps}", *args.set])
+    # the quickstart's field and sampler, sized to 48 px images (scenarios/quickstart/scenario.toml)
+    small = load_scenario(find_scenario("quickstart")).training.train
+    base = apply_overrides(small, [f"total_steps={args.steps}", *args.set])
     seeds = [int(s) for s in args.seeds.split(",")]
     print(f"{args.data}, k1 = {args.k1}, photographed at {args.native_scale}x the width: {args.steps} steps per "
           f"model, seeds {seeds}; scored on the pinhole capture's held-out views (every {args.test_every}th)", flush=True)
