@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import signal
 import socket
@@ -41,7 +42,7 @@ from typing import Callable
 from agent.telemetry import RoundRecord
 from cli.config import to_dict
 from cli.swarm_file import security_sections, swarm_doc
-from cli.scenario.spec import ScenarioSpec, spec_to_dict
+from cli.scenario.spec import FreezeFault, ScenarioSpec, spec_to_dict
 from cli.scenario.tomlout import dumps
 
 __all__ = ["ScenarioRunner", "RunOutcome", "RobotProcess", "prepare_split", "free_ports", "swarm_document", "UpCommand"]
@@ -207,7 +208,8 @@ class ScenarioRunner:
             i: RobotProcess(i, self.out / "robots" / str(i), self.out / "logs" / f"robot{i}.log") for i in spec.ids
         }
         self.lab = None
-        self._thaws: list[tuple[float, int]] = []  # (monotonic time, robot) of frozen robots to SIGCONT
+        # frozen robots to SIGCONT: (monotonic deadline or inf, the others' round to wait for or None, robot)
+        self._thaws: list[tuple[float, int | None, int]] = []
         self.events: list[dict] = []
         self.t0 = time.monotonic()
         self.endpoints: dict[int, tuple[list[str], list[str]]] = {}
@@ -283,15 +285,24 @@ class ScenarioRunner:
             r.exit_codes.append(r.proc.returncode)
         r.state = "killed"
 
-    def _freeze(self, i: int, seconds: float) -> None:
+    def _freeze(self, i: int, fault: FreezeFault) -> None:
         r = self.robots[i]
         if r.proc is not None and r.proc.poll() is None:
             r.proc.send_signal(signal.SIGSTOP)
-            self._thaws.append((time.monotonic() + seconds, i))
+            deadline = time.monotonic() + fault.seconds if fault.seconds > 0 else math.inf
+            self._thaws.append((deadline, r.completed + fault.rounds if fault.rounds > 0 else None, i))
+
+    def _others_reached(self, i: int, round_index: int | None) -> bool:
+        """Every other running robot has completed ``round_index`` (or none runs any more)."""
+        others = [r.completed for j, r in self.robots.items() if j != i and r.state == "running"
+                  and r.proc is not None and r.proc.poll() is None]
+        return round_index is not None and (not others or min(others) >= round_index)
 
     def _thaw_due(self, everyone: bool = False) -> None:
-        for t, i in [x for x in self._thaws if everyone or x[0] <= time.monotonic()]:
-            self._thaws.remove((t, i))
+        due = [x for x in self._thaws if everyone or x[0] <= time.monotonic() or self._others_reached(x[2], x[1])]
+        for x in due:
+            self._thaws.remove(x)
+            i = x[2]
             r = self.robots[i]
             if r.proc is not None and r.proc.poll() is None:
                 with contextlib.suppress(ProcessLookupError):
@@ -333,9 +344,8 @@ class ScenarioRunner:
         for x in f.restart:
             items.append((x.round, 3, f"restart robot {x.robot}", lambda x=x: self._start(x.robot), {"fault": "restart", "robot": x.robot}))
         for x in f.freeze:
-            items.append((x.round, 2, f"freeze robot {x.robot} for {x.seconds:g} s",
-                          lambda x=x: self._freeze(x.robot, x.seconds),
-                          {"fault": "freeze", "robot": x.robot, "seconds": x.seconds}))
+            items.append((x.round, 2, x.describe(), lambda x=x: self._freeze(x.robot, x),
+                          {"fault": "freeze", "robot": x.robot, "seconds": x.seconds, "rounds": x.rounds}))
         for x in f.cut:
             a, b = x.link
             items.append((x.from_round, 1, f"cut link {a}-{b}", lambda a=a, b=b: self.lab.set_link(a, b, False), {"fault": "cut", "link": [a, b]}))

@@ -33,7 +33,7 @@ error that names it. Example (every table but ``[scenario]`` is optional)::
     [faults]                                   # rounds count from 0
     kill = [{ robot = 3, round = 2 }]          # SIGKILL robot 3 when the swarm reaches round 2
     restart = [{ robot = 3, round = 4 }]       # start it again on the same run dir (it resumes)
-    freeze = [{ robot = 2, round = 3, seconds = 5 }]  # SIGSTOP robot 2 for 5 s, then SIGCONT
+    freeze = [{ robot = 2, round = 3, seconds = 5 }]  # SIGSTOP robot 2 for 5 s (or `rounds = 3`), then SIGCONT
     cut = [{ link = [1, 2], from_round = 2, to_round = 4 }]                  # netns only
     netem = [{ link = [2, 3], from_round = 1, delay_ms = 100, loss = 0.1 }]  # netns only
 
@@ -120,16 +120,23 @@ class RestartFault:
 
 @dataclass
 class FreezeFault:
-    """SIGSTOP ``robot`` at ``round`` and SIGCONT it ``seconds`` later: a robot that hangs (no
-    goodbye; its lease expires) and then comes back, rounds behind, with its old state."""
+    """SIGSTOP ``robot`` at ``round`` and SIGCONT it ``seconds`` later, or once every other running
+    robot is ``rounds`` rounds past it, whichever comes first: a robot that hangs (no goodbye; its
+    lease expires) and then comes back, rounds behind, with its old state. ``rounds`` makes "how
+    far behind" the same on a fast machine and a slow one."""
 
     robot: int
     round: int
-    seconds: float
+    seconds: float = 0.0  # 0: no time limit (then rounds must be set)
+    rounds: int = 0  # 0: no round limit (then seconds must be set)
 
     def __post_init__(self) -> None:
-        if not self.seconds > 0:
-            raise ValueError(f"faults.freeze of robot {self.robot}: seconds must be > 0, got {self.seconds}")
+        if self.seconds < 0 or self.rounds < 0 or not (self.seconds > 0 or self.rounds > 0):
+            raise ValueError(f"faults.freeze of robot {self.robot}: set seconds > 0 and/or rounds > 0")
+
+    def describe(self) -> str:
+        limits = [f"{self.seconds:g} s"] * (self.seconds > 0) + [f"{self.rounds} rounds of the others"] * (self.rounds > 0)
+        return f"freeze robot {self.robot} for {' or '.join(limits)}"
 
 
 @dataclass

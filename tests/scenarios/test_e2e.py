@@ -208,18 +208,23 @@ def test_after_the_heal_the_swarm_is_in_step_again(cut_run):
 
 
 def test_a_frozen_robot_comes_back_in_step(tmp_path, fault_free_long):
-    """SIGSTOP robot 3 at round 2 for 2 s (its lease expires; 2 and 4 go on without it), then SIGCONT.
+    """SIGSTOP robot 3 at round 2 until the others are 3 rounds further (its lease expires; 2 and 4
+    go on without it), then SIGCONT.
 
     It wakes up rounds behind, with neighbours too far ahead to buffer their snapshots (a window
-    of one round here, so that a short freeze is enough): it must learn where they are and catch
-    up, not wait at every barrier for rounds they left long ago (which cost 20 s per round, for the
-    rest of the run, before the mailbox kept a sender's newest snapshot beyond the window).
+    of one round here): it must learn where they are and catch up, not wait at every barrier for
+    rounds they left long ago (which cost 20 s per round, for the rest of the run, before the
+    mailbox kept a sender's newest snapshot beyond the window). The freeze is counted in the
+    others' rounds: a freeze in seconds left it only one round behind on a fast machine.
     """
-    outcome, out, report = run_scenario(tmp_path, "freeze", "[faults]\nfreeze = [{ robot = 3, round = 2, seconds = 2 }]\n",
+    outcome, out, report = run_scenario(tmp_path, "freeze",
+                                        "[faults]\nfreeze = [{ robot = 3, round = 2, rounds = 3, seconds = 120 }]\n",
                                         steps=CUT_STEPS, rounds=CUT_ROUNDS, daemon="max_ahead = 1\n")
     assert outcome.ok, outcome.reason
     run = json.loads((out / "run.json").read_text())
     thaw = next(e for e in run["events"] if e.get("fault") == "thaw")
+    frozen_at = thaw["robot_rounds"]["3"]
+    assert all(thaw["robot_rounds"][str(i)] >= frozen_at + 3 for i in (2, 4)), thaw  # thawed by rounds, not time
     for i in (1, 2, 3, 4):
         recs = telemetry(out, i)
         assert recs[-1].round == CUT_ROUNDS and (out / f"robots/{i}/done.json").is_file()

@@ -66,6 +66,27 @@ def test_kill_and_restart_on_the_timeline(tmp_path):
     assert (out / "data/robot1/transforms.json").is_file() and (out / "swarm.toml").is_file()
 
 
+def test_a_freeze_in_rounds_thaws_once_the_others_are_that_far_ahead(tmp_path):
+    """Robot 1 frozen at round 2 for 3 of the others' rounds (no time limit): the thaw comes when
+    robots 2 and 3 have completed 5, whatever the machine's pace, and robot 1 still finishes."""
+    spec = spec_with(tmp_path, "[faults]\nfreeze = [{ robot = 1, round = 2, rounds = 3 }]\n")
+    out = tmp_path / "run"
+    res = ScenarioRunner(spec, out, mode="local", up_command=stand_in, echo=lambda s: None).run()
+    assert res.ok, res.reason
+    events = json.loads((out / "run.json").read_text())["events"]
+    freeze = next(e for e in events if e.get("fault") == "freeze")
+    thaw = next(e for e in events if e.get("fault") == "thaw")
+    assert freeze["rounds"] == 3 and "3 rounds of the others" in freeze["description"]
+    assert thaw["robot_rounds"]["1"] == freeze["robot_rounds"]["1"]  # it did nothing while frozen
+    assert min(thaw["robot_rounds"][k] for k in ("2", "3")) >= freeze["robot_rounds"]["1"] + 3
+    assert (out / "robots/1/done.json").is_file()
+
+
+def test_a_freeze_needs_a_limit(tmp_path):
+    with pytest.raises(ConfigError, match="seconds > 0 and/or rounds > 0"):
+        spec_with(tmp_path, "[faults]\nfreeze = [{ robot = 1, round = 2 }]\n")
+
+
 def test_link_faults_need_netns(tmp_path):
     spec = spec_with(tmp_path, "[faults]\ncut = [{ link = [1, 2], from_round = 1, to_round = 3 }]\n")
     with pytest.raises(ConfigError, match="--mode netns"):
