@@ -387,7 +387,7 @@ class Daemon:
         t0 = time.monotonic()
         aligned = self._in_consensus()
         self.board.set(phase="training")
-        self.trainer.begin_round(k, _to_torch(heard_in if aligned else {}))
+        self.trainer.begin_round(k, _to_torch(heard_in if aligned else {}), own=self._as_received(k))
         stats = self.trainer.train(self.training.steps_per_round, on_step=self._check_stop)
         self.round = k + 1
         t_compute = self._round_compute_s = time.monotonic() - t0
@@ -396,7 +396,7 @@ class Daemon:
         self.board.set(phase="waiting")
         heard, waited = self._barrier()  # unaligned: for the pace only
         self._apply_reference()  # a failover seen while waiting takes effect now, not next round
-        self.trainer.end_round(_to_torch(heard if aligned else {}))
+        self.trainer.end_round(_to_torch(heard if aligned else {}), own=self._as_received(self.round))
         heard = self._catch_up(heard)
         self.mailbox.advance(self.round)  # slide the window: keeps accepting up to round + max_ahead
         if not aligned:
@@ -477,6 +477,14 @@ class Daemon:
                             epoch=self.membership.epoch, signature=self.spec.signature(),
                             tensors=_to_numpy(self.trainer.theta()))
         self.exchange.publish(msg, self.spec, self.cfg.wire_dtype, self.cfg.compression)
+
+    def _as_received(self, round_index: int) -> dict[str, Tensor] | None:
+        """Our theta of ``round_index`` as the neighbours rebuilt it, when a lossy exchange made it
+        differ: C-ADMM then prices the same disagreement at both ends of an edge (y_ij = -y_ji)."""
+        held = self.exchange.encoder.held_by_receivers()
+        if held is None or held[0] != round_index:
+            return None
+        return {n: torch.from_numpy(np.array(a, dtype=np.float32, copy=True)) for n, a in held[1].items()}
 
     def _join_current_round(self) -> None:
         """Late join / restart: fetch the neighbours' newest snapshots and move to their round.

@@ -146,6 +146,10 @@ class Simulation:
     ) -> None:
         self.cfg = cfg
         self.wire = wire
+        # With a lossy wire, C-ADMM runs on what both ends of an edge hold: each robot's own
+        # theta as its neighbours received it (the public copy), so y_ij = -y_ji stays exact.
+        self.on_public = True
+        self.public: dict[int, dict[str, Tensor]] = {}
         self.neighbours = {i: sorted(neighbours[i]) for i in robots}
         self.reference_id = min(robots) if reference_id is None else reference_id
         initial_poses = initial_poses or {}
@@ -165,13 +169,15 @@ class Simulation:
         k = self.round
         stats = {}
         for i, robot in self.robots.items():
-            robot.trainer.begin_round(k, {j: self.thetas[j] for j in self.neighbours[i]})
+            robot.trainer.begin_round(k, {j: self.thetas[j] for j in self.neighbours[i]}, own=self.public.get(i))
             stats[i] = robot.trainer.train(self.cfg.steps_per_round)
         own = new = {i: r.trainer.theta() for i, r in self.robots.items()}
         if self.wire is not None:
             new = {i: self.wire(i, k + 1, theta) for i, theta in own.items()}
+            if self.on_public:
+                self.public = new
         for i, robot in self.robots.items():
-            robot.trainer.end_round({j: new[j] for j in self.neighbours[i]})
+            robot.trainer.end_round({j: new[j] for j in self.neighbours[i]}, own=self.public.get(i))
         self.thetas = new
         self.round += 1
         ids = list(self.robots)

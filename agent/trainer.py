@@ -249,19 +249,22 @@ class RobotTrainer:
         lw = self.level_weights()
         self.grid.update(0, lambda x: self.field.density(x, lw)[0], self.generator)
 
-    def begin_round(self, round_index: int, neighbours: Mapping[int, Mapping[str, Tensor]]) -> None:
-        """Anchors of round k from theta_i^k (the current parameters) and the theta_j^k heard."""
+    def begin_round(self, round_index: int, neighbours: Mapping[int, Mapping[str, Tensor]],
+                    own: Mapping[str, Tensor] | None = None) -> None:
+        """Anchors of round k from theta_i^k and the theta_j^k heard. ``own``: theta_i^k as the
+        neighbours hold it (a lossy exchange), else the current parameters."""
         if self.consensus is None:
             return
-        own = [p.detach() for p in self.field.parameters()]
-        self.consensus.begin_round(round_index, own, {j: self._as_list(t) for j, t in neighbours.items()})
+        self.consensus.begin_round(round_index, self._own(own), {j: self._as_list(t) for j, t in neighbours.items()})
 
-    def end_round(self, neighbours: Mapping[int, Mapping[str, Tensor]]) -> None:
-        """Dual update with theta_i^{k+1} (current) and the theta_j^{k+1} heard."""
+    def end_round(self, neighbours: Mapping[int, Mapping[str, Tensor]], own: Mapping[str, Tensor] | None = None) -> None:
+        """Dual update with theta_i^{k+1} (``own`` as in :meth:`begin_round`) and the theta_j^{k+1} heard."""
         if self.consensus is None:
             return
-        own = [p.detach() for p in self.field.parameters()]
-        self.consensus.dual_update(own, {j: self._as_list(t) for j, t in neighbours.items()})
+        self.consensus.dual_update(self._own(own), {j: self._as_list(t) for j, t in neighbours.items()})
+
+    def _own(self, own: Mapping[str, Tensor] | None) -> list[Tensor]:
+        return self._as_list(own) if own is not None else [p.detach() for p in self.field.parameters()]
 
     # --- schedules ---------------------------------------------------------------------------
     def _lr_factor(self, step: int) -> float:

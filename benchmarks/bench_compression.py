@@ -44,14 +44,31 @@ from protocol.membership import Topology  # noqa: E402
 from bench_consensus import coarse_initial_poses  # noqa: E402  (benchmarks/, on the path above)
 
 
+def mode_config(mode: str, topk: float) -> tuple[CompressionConfig, bool]:
+    """``MODE[@key=value,...]``: a mode with CompressionConfig fields set, e.g.
+    ``delta+ternary@ternary_threshold=1.0``; ``@exact`` runs C-ADMM on each robot's exact theta
+    rather than on the copy its neighbours hold (the public copy, as the daemons do)."""
+    name, _, rest = mode.partition("@")
+    fields: dict = {"compression": name, "topk_fraction": topk}
+    on_public = True
+    for item in filter(None, rest.split(",")):
+        if item == "exact":
+            on_public = False
+            continue
+        key, _, value = item.partition("=")
+        fields[key] = type(getattr(CompressionConfig(), key))(value)
+    return CompressionConfig(**fields), on_public
+
+
 def run_mode(mode: str, split, neighbours, cfg: SwarmTrainingConfig, topk: float, ev: EvalSet,
              initial: dict | None = None) -> dict:
     """Train the swarm with snapshots in ``mode``; scores per robot and bytes per push."""
     t0 = time.time()
     robots = {i: r.views for i, r in split.robots.items()}
     sim = Simulation(robots, neighbours, split.box_from_shared, cfg, initial_poses=initial)
-    sim.wire = ProtocolWire(CompressionConfig(compression=mode, topk_fraction=topk),
-                            next(iter(sim.thetas.values())), sorted(robots))
+    compression, on_public = mode_config(mode, topk)
+    sim.on_public = on_public
+    sim.wire = ProtocolWire(compression, next(iter(sim.thetas.values())), sorted(robots))
     sim.run()
     raw = 4 * sim.wire.spec.num_values
     pushes = [b for sizes in sim.wire.sent.values() for b in sizes]

@@ -1,4 +1,4 @@
-"""Compressed snapshots: int8 quantisation, delta coding against a named base, top-k with error feedback.
+"""Compressed snapshots: int8, delta coding against a named base, top-k and few-level codes with error feedback.
 
 A float32 hash table is incompressible (zstd gains nothing), so a robot sending its whole field
 every round at float32 makes the network, not the CPU, set the pace on a slow link. The modes
@@ -10,7 +10,14 @@ every round at float32 makes the network, not the CPU, set the pace on a slow li
 - ``delta+int8``  ``theta - base`` as int8: untouched entries are exact zeros, which zstd squeezes;
 - ``delta+topk``  only the ``topk_fraction`` largest entries of ``theta - base`` per tensor, as
                   int8, with their indices as gaps split into byte planes (zstd packs them);
-                  tensors up to ``topk_full_below`` entries (the MLPs) whole.
+                  tensors up to ``whole_below`` entries (the MLPs) whole;
+- ``delta+ternary`` every entry of ``theta - base`` rounded to a step (``level_step`` times its
+                  chunk's mean |delta|) and clipped to -1, 0, +1 steps, five codes to a byte;
+- ``delta+quinary`` the same with -2..+2 steps, three codes to a byte. Each code decodes to the
+                  mean |delta| of its chunk's entries at that level. Every entry moves every
+                  round, so no entry lags its neighbours' copy by more than a step; zstd then
+                  packs the codes near their entropy (1.2-1.7 bits a value). Tensors up to
+                  ``whole_below`` entries go as int8 deltas.
 
 **Error feedback, CHOCO-SGD style.** The sender keeps a public copy ``x_hat``: exactly what its
 receivers reconstruct. Each delta is ``theta - x_hat``, and ``x_hat`` advances by what was sent,
@@ -24,7 +31,9 @@ a restart) asks for the sender's ``latest``, which is always the full float32 ``
 
 Frames stay self-describing: the codec's header meta says the mode, chunk, base and digest; the
 array table lists per tensor ``<name>/q`` (int8), ``<name>/scale`` (float32) and, for top-k,
-``<name>/gaps`` (uint8 [4, k]), all checked against the model spec before any allocation.
+``<name>/gaps`` (uint8 [4, k]); a few-level tensor has ``<name>/codes`` (uint8, codes packed in
+base 3 or 5) in place of ``q`` and a scale per chunk and level. All are checked against the
+model spec before any allocation.
 Pure Python + numpy; no torch, no zenoh.
 """
 
@@ -40,9 +49,11 @@ import numpy as np
 
 from protocol.messages import MAX_ROUND, CodedTheta, ModelSpec, Rejected, ThetaSnapshot, is_int
 
-MODES = ("none", "fp16", "int8", "delta+int8", "delta+topk")
-CODED_MODES = ("int8", "delta+int8", "delta+topk")  # frames with a coded array table
-DELTA_MODES = ("delta+int8", "delta+topk")  # frames that need a base
+MODES = ("none", "fp16", "int8", "delta+int8", "delta+topk", "delta+ternary", "delta+quinary")
+CODED_MODES = MODES[2:]  # frames with a coded array table
+DELTA_MODES = MODES[3:]  # frames that need a base
+LEVEL_MODES = {"delta+ternary": 1, "delta+quinary": 2}  # the largest |code|, in steps
+_PACKING = {1: (3, 5), 2: (5, 3)}  # largest |code| -> (base, codes per byte)
 META_FIELDS = {"code", "chunk", "base_round", "base", "digest"}
 MAX_CHUNK = 1 << 20
 _DIGEST_HEX = 16
@@ -53,22 +64,28 @@ _NO_BASE = -1  # base_round of a frame without a base
 class CompressionConfig:
     """How this robot's snapshots go on the wire (``[daemon.exchange]``)."""
 
-    compression: Literal["none", "fp16", "int8", "delta+int8", "delta+topk"] = "none"
+    compression: Literal["none", "fp16", "int8", "delta+int8", "delta+topk", "delta+ternary", "delta+quinary"] = "none"
     # delta+topk: the share of each tensor's entries sent per round (the rest waits, error feedback)
     topk_fraction: float = 0.05
-    # delta+topk: tensors of at most this many entries go whole (as delta+int8 would send them).
+    # delta+topk, delta+ternary, delta+quinary: tensors of at most this many entries go whole, as int8 deltas.
     # These are the decoders' weights: every ray passes through them, they are ~0.3% of lego's
-    # snapshot, and sending them whole gained 0.65 dB there at 5% (docs/results.md). 0 = none.
-    topk_full_below: int = 16384
-    chunk: int = 1024  # values per int8 scale: smaller follows the hash levels' ranges closer
+    # snapshot, and sending them whole gained 0.65 dB there with top-k at 5% (docs/results.md). 0 = none.
+    whole_below: int = 16384
+    # delta+ternary/quinary: the rounding step, in units of each chunk's mean |delta|. On
+    # Laplace-like deltas 2 is near the least squared error per bit (entries within one mean of
+    # zero send nothing; what is not sent stays in the residual).
+    level_step: float = 2.0
+    chunk: int = 1024  # values per scale: smaller follows the hash levels' ranges closer
 
     def __post_init__(self) -> None:
         if self.compression not in MODES:
             raise ValueError(f"compression must be one of {MODES}, got {self.compression!r}")
         if not 0.0 < self.topk_fraction <= 0.5:
             raise ValueError(f"topk_fraction must be in (0, 0.5], got {self.topk_fraction!r}")
-        if not is_int(self.topk_full_below) or self.topk_full_below < 0:
-            raise ValueError(f"topk_full_below must be an integer >= 0, got {self.topk_full_below!r}")
+        if not is_int(self.whole_below) or self.whole_below < 0:
+            raise ValueError(f"whole_below must be an integer >= 0, got {self.whole_below!r}")
+        if not 0.0 < self.level_step <= 8.0:
+            raise ValueError(f"level_step must be in (0, 8], got {self.level_step!r}")
         if not is_int(self.chunk) or not 16 <= self.chunk <= MAX_CHUNK:
             raise ValueError(f"chunk must be an integer in [16, {MAX_CHUNK}], got {self.chunk!r}")
 
@@ -87,21 +104,75 @@ def theta_digest(tensors: Mapping[str, np.ndarray]) -> str:
 
 def quantise(values: np.ndarray, chunk: int) -> tuple[np.ndarray, np.ndarray]:
     """float32 [n] -> (int8 [n], float32 scales [ceil(n / chunk)]): symmetric, per chunk."""
-    n = values.size
-    m = -(-n // chunk)
-    padded = np.zeros(m * chunk, dtype=np.float32)
-    padded[:n] = values
-    blocks = padded.reshape(m, chunk)
-    scale = (np.abs(blocks).max(axis=1) / np.float32(127)).astype(np.float32) if m else np.zeros(0, np.float32)
+    blocks = _blocks(values, chunk)
+    scale = (np.abs(blocks).max(axis=1) / np.float32(127)).astype(np.float32)
     with np.errstate(divide="ignore"):
         inverse = np.where(scale > 0, np.float32(1) / np.where(scale > 0, scale, 1), 0).astype(np.float32)
-    q = np.clip(np.rint(blocks * inverse[:, None]), -127, 127).astype(np.int8).reshape(-1)[:n]
+    q = np.clip(np.rint(blocks * inverse[:, None]), -127, 127).astype(np.int8).reshape(-1)[: values.size]
     return q, scale
+
+
+def level_quantise(values: np.ndarray, chunk: int, levels: int, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """float32 [n] -> (codes int8 [n] in [-levels, levels], float32 scales [ceil(n / chunk) * levels]).
+
+    Per chunk, values round to multiples of ``step`` x the chunk's mean |value|, clipped to
+    ``levels`` steps; code a decodes to the mean |value| of the chunk's entries with code +-a (the
+    least squared error for those entries)."""
+    blocks = _blocks(values, chunk)
+    size = np.full(blocks.shape[0], chunk, np.float32)
+    if size.size:
+        size[-1] = values.size - chunk * (size.size - 1)  # the last chunk's padding is no value
+    magnitude = np.abs(blocks)
+    width = step * magnitude.sum(axis=1) / size  # [m]
+    with np.errstate(divide="ignore"):
+        inverse = np.where(width > 0, 1 / np.where(width > 0, width, 1), 0).astype(np.float32)
+    level = np.minimum(np.floor(magnitude * inverse[:, None] + 0.5), levels)  # [m, chunk]
+    scales = np.zeros((blocks.shape[0], levels), np.float32)
+    for a in range(1, levels + 1):
+        at = level == a
+        scales[:, a - 1] = (magnitude * at).sum(axis=1) / np.maximum(at.sum(axis=1), 1)
+    codes = (np.sign(blocks) * level).astype(np.int8).reshape(-1)[: values.size]
+    return codes, scales.reshape(-1)
+
+
+def level_dequantise(codes: np.ndarray, scales: np.ndarray, chunk: int, levels: int) -> np.ndarray:
+    """The float32 values both ends compute from (codes, scales): bit-identical on either side."""
+    magnitude = np.abs(codes.astype(np.int64))
+    chunk_of = np.arange(codes.size) // chunk
+    table = np.concatenate([np.zeros((scales.size // levels, 1), np.float32), scales.reshape(-1, levels)], axis=1)
+    return (np.sign(codes).astype(np.float32) * table[chunk_of, magnitude]).astype(np.float32)
+
+
+def _blocks(values: np.ndarray, chunk: int) -> np.ndarray:
+    """float32 [n] -> [ceil(n / chunk), chunk], zero-padded."""
+    m = -(-values.size // chunk)
+    padded = np.zeros(m * chunk, dtype=np.float32)
+    padded[: values.size] = values
+    return padded.reshape(m, chunk)
 
 
 def dequantise(q: np.ndarray, scale: np.ndarray, chunk: int) -> np.ndarray:
     """The float32 values both ends compute from (q, scale): bit-identical on either side."""
     return q.astype(np.float32) * np.repeat(scale, chunk)[: q.size]
+
+
+def pack_codes(codes: np.ndarray, levels: int) -> np.ndarray:
+    """int8 codes [n] in [-levels, levels] -> uint8 [ceil(n / per)]: ``per`` base-(2 levels + 1)
+    digits a byte (5 ternary, 3 quinary), so zstd's byte-wise entropy coder sees their joint law."""
+    base, per = _PACKING[levels]
+    digits = np.zeros(-(-codes.size // per) * per, np.int64)
+    digits[: codes.size] = codes % base  # -a -> base - a
+    return (digits.reshape(-1, per) * base ** np.arange(per)).sum(axis=1).astype(np.uint8)
+
+
+def unpack_codes(packed: np.ndarray, size: int, levels: int, name: str) -> np.ndarray:
+    """uint8 [ceil(size / per)] -> int8 codes [size]; a byte that packs no ``per`` digits is refused."""
+    base, per = _PACKING[levels]
+    if packed.size and int(packed.max()) >= base**per:
+        raise Rejected("bad_field", f"{name[:64]!r}: a byte of codes above {base**per - 1}")
+    digits = (packed.astype(np.int64)[:, None] // base ** np.arange(per)) % base
+    codes = digits.reshape(-1)[:size]
+    return np.where(codes > levels, codes - base, codes).astype(np.int8)
 
 
 def _gap_planes(index: np.ndarray) -> np.ndarray:
@@ -120,15 +191,24 @@ def _indices(planes: np.ndarray, size: int, name: str) -> np.ndarray:
 
 # --------------------------------------------------------------------------- encoding
 
+#: How one tensor is coded: ("q", n) int8 values, ("topk", k) k of them with their gaps, ("codes", n)
+#: few-level codes (their number from the mode).
+Form = tuple[str, int]
+
 
 def _code_tensor(mode: str, name: str, delta: np.ndarray, cfg: CompressionConfig
                  ) -> tuple[list[tuple[str, np.ndarray, str]], np.ndarray]:
     """One tensor's arrays and the float32 delta [n] they decode to."""
     flat = delta.reshape(-1)
+    levels = LEVEL_MODES.get(mode)
+    if levels and flat.size > cfg.whole_below:
+        codes, scale = level_quantise(flat, cfg.chunk, levels, cfg.level_step)
+        return [(f"{name}/codes", pack_codes(codes, levels), "uint8"), (f"{name}/scale", scale, "float32")], \
+            level_dequantise(codes, scale, cfg.chunk, levels)
     if mode != "delta+topk":
         q, scale = quantise(flat, cfg.chunk)
         return [(f"{name}/q", q, "int8"), (f"{name}/scale", scale, "float32")], dequantise(q, scale, cfg.chunk)
-    share = flat.size if flat.size <= cfg.topk_full_below else math.ceil(cfg.topk_fraction * flat.size)
+    share = flat.size if flat.size <= cfg.whole_below else math.ceil(cfg.topk_fraction * flat.size)
     k = min(share, int(np.count_nonzero(flat)))
     index = np.sort(np.argpartition(-np.abs(flat), k - 1)[:k]) if k else np.zeros(0, np.int64)
     q, scale = quantise(flat[index], cfg.chunk)
@@ -165,7 +245,7 @@ def code_snapshot(msg: ThetaSnapshot, cfg: CompressionConfig, base: tuple[int, s
 def coded_arrays(coded: CodedTheta, spec: ModelSpec) -> list[tuple[str, np.ndarray, str]]:
     """(name, array, wire dtype) in table order, checked against the spec (for our own sends)."""
     out = []
-    for name, dtype, shape in coded_layout(coded.mode, coded.chunk, spec, _sent_counts(coded, spec)):
+    for name, dtype, shape in coded_layout(coded.mode, coded.chunk, spec, _sent_forms(coded, spec)):
         a = coded.arrays.get(name)
         if a is None or tuple(a.shape) != shape:
             raise ValueError(f"coded array {name!r} missing or not of shape {shape}")
@@ -173,10 +253,10 @@ def coded_arrays(coded: CodedTheta, spec: ModelSpec) -> list[tuple[str, np.ndarr
     return out
 
 
-def _sent_counts(coded: CodedTheta, spec: ModelSpec) -> list[int]:
-    if coded.mode != "delta+topk":
-        return [p.size for p in spec.params]
-    return [int(np.shape(coded.arrays[f"{p.name}/q"])[0]) for p in spec.params]
+def _sent_forms(coded: CodedTheta, spec: ModelSpec) -> list[Form]:
+    if coded.mode == "delta+topk":
+        return [("topk", int(np.shape(coded.arrays[f"{p.name}/q"])[0])) for p in spec.params]
+    return [("codes" if f"{p.name}/codes" in coded.arrays else "q", p.size) for p in spec.params]
 
 
 def coded_meta(coded: CodedTheta) -> dict[str, Any]:
@@ -187,13 +267,18 @@ def coded_meta(coded: CodedTheta) -> dict[str, Any]:
 # --------------------------------------------------------------------------- decoding checks
 
 
-def coded_layout(mode: str, chunk: int, spec: ModelSpec, counts: list[int]) -> list[tuple[str, str, tuple[int, ...]]]:
+def coded_layout(mode: str, chunk: int, spec: ModelSpec, forms: list[Form]) -> list[tuple[str, str, tuple[int, ...]]]:
     """The array table a coded frame must have: per tensor (name, wire dtype, shape)."""
     table = []
-    for p, k in zip(spec.params, counts):
-        if mode == "delta+topk":
+    for p, (form, k) in zip(spec.params, forms):
+        if form == "topk":
             table.append((f"{p.name}/gaps", "uint8", (4, k)))
-        table += [(f"{p.name}/q", "int8", (k,)), (f"{p.name}/scale", "float32", (-(-k // chunk),))]
+        if form == "codes":
+            levels = LEVEL_MODES[mode]
+            table += [(f"{p.name}/codes", "uint8", (-(-k // _PACKING[levels][1]),)),
+                      (f"{p.name}/scale", "float32", (-(-k // chunk) * levels,))]
+        else:
+            table += [(f"{p.name}/q", "int8", (k,)), (f"{p.name}/scale", "float32", (-(-k // chunk),))]
     return table
 
 
@@ -221,30 +306,49 @@ def check_meta(meta: Any) -> CodedTheta | None:
 
 def check_coded_table(entries: list[tuple[str, str, tuple[int, ...]]], coded: CodedTheta, spec: ModelSpec) -> None:
     """The header's array table against the spec, before any payload byte is read."""
-    per = 3 if coded.mode == "delta+topk" else 2
-    if len(entries) != per * len(spec.params):
-        raise Rejected("bad_shape", f"{len(entries)} coded arrays, the spec's {len(spec.params)} tensors need "
-                                    f"{per * len(spec.params)}")
-    counts = []
-    for i, p in enumerate(spec.params):
-        shape = entries[i * per + per - 2][2]  # the q array of this tensor
-        if len(shape) != 1 or shape[0] > p.size or (coded.mode != "delta+topk" and shape[0] != p.size):
-            raise Rejected("bad_shape", f"tensor {p.name!r}: {list(shape)[:4]} coded values for {p.size} entries")
-        counts.append(shape[0])
-    for got, want in zip(entries, coded_layout(coded.mode, coded.chunk, spec, counts)):
-        if got != want:
+    forms = _received_forms(entries, coded, spec)
+    want = coded_layout(coded.mode, coded.chunk, spec, forms)
+    if len(entries) != len(want):
+        raise Rejected("bad_shape", f"{len(entries)} coded arrays, the spec's {len(spec.params)} tensors need {len(want)}")
+    for got, expected in zip(entries, want):
+        if got != expected:
             raise Rejected("bad_shape", f"coded array {got[0][:64]!r} {got[1]} {list(got[2])[:4]}, "
-                                        f"want {want[0]!r} {want[1]} {list(want[2])}")
+                                        f"want {expected[0]!r} {expected[1]} {list(expected[2])}")
+
+
+def _received_forms(entries: list[tuple[str, str, tuple[int, ...]]], coded: CodedTheta, spec: ModelSpec) -> list[Form]:
+    """Each tensor's form as the table states it (top-k counts, few-level codes or int8), within the spec."""
+    forms: list[Form] = []
+    pos = 0
+    for p in spec.params:
+        first = entries[pos] if pos < len(entries) else ("", "", ())
+        if coded.mode == "delta+topk":
+            shape = entries[pos + 1][2] if pos + 1 < len(entries) else ()
+            if len(shape) != 1 or shape[0] > p.size:
+                raise Rejected("bad_shape", f"tensor {p.name!r}: {list(shape)[:4]} coded values for {p.size} entries")
+            forms.append(("topk", shape[0]))
+            pos += 3
+        else:
+            few = coded.mode in LEVEL_MODES and first[0] == f"{p.name}/codes"
+            forms.append(("codes" if few else "q", p.size))
+            pos += 2
+    return forms
 
 
 def check_coded_values(arrays: dict[str, np.ndarray], coded: CodedTheta, spec: ModelSpec) -> CodedTheta:
-    """After decompression: scales non-negative, top-k indices in range (stored decoded)."""
+    """After decompression: scales non-negative, top-k indices in range, code bytes valid
+    (indices and codes stored decoded)."""
     out: dict[str, np.ndarray] = {}
     for p in spec.params:
         scale = arrays[f"{p.name}/scale"]
         if scale.size and not (scale >= 0).all():
-            raise Rejected("bad_field", f"{p.name[:64]!r}: negative int8 scale")
-        out[f"{p.name}/q"], out[f"{p.name}/scale"] = arrays[f"{p.name}/q"], scale
+            raise Rejected("bad_field", f"{p.name[:64]!r}: negative scale")
+        out[f"{p.name}/scale"] = scale
+        if f"{p.name}/codes" in arrays:
+            out[f"{p.name}/codes"] = arrays[f"{p.name}/codes"]
+            out[f"{p.name}/levels"] = unpack_codes(arrays[f"{p.name}/codes"], p.size, LEVEL_MODES[coded.mode], p.name)
+        else:
+            out[f"{p.name}/q"] = arrays[f"{p.name}/q"]
         if coded.mode == "delta+topk":
             out[f"{p.name}/index"] = _indices(arrays[f"{p.name}/gaps"], p.size, p.name)
             out[f"{p.name}/gaps"] = arrays[f"{p.name}/gaps"]
@@ -255,7 +359,11 @@ def reconstruct(coded: CodedTheta, spec: ModelSpec, base: Mapping[str, np.ndarra
     """The float32 tensors of a checked coded snapshot (its base's for a delta); digest verified."""
     out = {}
     for p in spec.params:
-        decoded = dequantise(coded.arrays[f"{p.name}/q"], coded.arrays[f"{p.name}/scale"], coded.chunk)
+        if f"{p.name}/levels" in coded.arrays:
+            decoded = level_dequantise(coded.arrays[f"{p.name}/levels"], coded.arrays[f"{p.name}/scale"], coded.chunk,
+                                       LEVEL_MODES[coded.mode])
+        else:
+            decoded = dequantise(coded.arrays[f"{p.name}/q"], coded.arrays[f"{p.name}/scale"], coded.chunk)
         if coded.mode == "delta+topk":
             full = np.zeros(p.size, np.float32)
             full[coded.arrays[f"{p.name}/index"]] = decoded
@@ -341,6 +449,7 @@ class SnapshotEncoder:
     def __init__(self, cfg: CompressionConfig) -> None:
         self.cfg = cfg
         self._public: tuple[int, str, dict[str, np.ndarray]] | None = None  # (round, digest, x_hat)
+        self._lossy: tuple[int, dict[str, np.ndarray]] | None = None  # the last frame as received, if lossy
 
     def seed(self, tensors: Mapping[str, np.ndarray]) -> None:
         """Start from a base every receiver holds (theta^0, see :meth:`BaseBook.seed`)."""
@@ -353,17 +462,28 @@ class SnapshotEncoder:
             return None
         return self._public[0], self._public[1] or theta_digest(self._public[2])
 
+    def held_by_receivers(self) -> tuple[int, dict[str, np.ndarray]] | None:
+        """(round, tensors) of our newest snapshot as its receivers rebuild it, when a lossy mode
+        makes that differ from theta (C-ADMM runs on it, so both ends of an edge price the same
+        disagreement); None for lossless frames or before the first one."""
+        return self._lossy
+
     def encode(self, msg: ThetaSnapshot, spec: ModelSpec, compression: str, wire_dtype: str = "float32"
                ) -> tuple[bytes, bytes]:
         from protocol import codec  # codec imports this module for its checks
 
         mode = self.cfg.compression
+        self._lossy = None
         if mode in ("none", "fp16"):
-            data = codec.encode(msg, wire_dtype="float16" if mode == "fp16" else wire_dtype,
-                                compression=compression, spec=spec)
+            dtype = "float16" if mode == "fp16" else wire_dtype
+            data = codec.encode(msg, wire_dtype=dtype, compression=compression, spec=spec)
+            if dtype == "float16":
+                self._lossy = (msg.round, {n: np.asarray(t, np.float32).astype(np.float16).astype(np.float32)
+                                           for n, t in msg.tensors.items()})
             return data, data
         if mode == "int8":
-            coded, _ = code_snapshot(msg, self.cfg, None)
+            coded, recon = code_snapshot(msg, self.cfg, None)
+            self._lossy = (msg.round, recon)
             data = codec.encode(coded, compression=compression, spec=spec)
             return data, data
         if self._public is None:
@@ -377,4 +497,5 @@ class SnapshotEncoder:
         full = codec.encode(ThetaSnapshot(msg.swarm, msg.sender, msg.round, msg.epoch, msg.signature, recon),
                             compression=compression, spec=spec)
         self._public = (msg.round, coded.coded.digest, recon)
+        self._lossy = (msg.round, recon)
         return push, full

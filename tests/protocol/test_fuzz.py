@@ -26,7 +26,7 @@ import pytest
 import zstandard
 
 from protocol import codec
-from protocol.compression import CompressionConfig, code_snapshot
+from protocol.compression import LEVEL_MODES, CompressionConfig, code_snapshot
 from protocol.messages import KIND_KEYFRAMES, KIND_STATUS, KIND_THETA, Rejected, Status
 from tests.protocol.helpers import (Packed, deep_list, expectation, frame_of, keyframe_summary,
                                     keyframe_summary_with_cameras, pack_map, rle_zstd_frame, small_spec,
@@ -125,7 +125,8 @@ class Base:
 def _coded(mode: str, **kw: Any) -> bytes:
     """A compressed snapshot (a delta against another snapshot for the delta modes)."""
     base = snapshot(seed=7).tensors
-    cfg = CompressionConfig(compression=mode, topk_fraction=0.25, chunk=16)
+    cfg = CompressionConfig(compression=mode, topk_fraction=0.25, chunk=16,
+                            whole_below=0 if mode in LEVEL_MODES else 16384)  # few-level codes on every tensor
     coded, _ = code_snapshot(snapshot(), cfg, None if mode == "int8" else (4, "0123456789abcdef", base))
     return codec.encode(coded, spec=small_spec(), **kw)
 
@@ -147,6 +148,8 @@ def _bases() -> list[Base]:
         Base(_coded("delta+topk")),
         Base(_coded("delta+int8", compression="none")),
         Base(_coded("int8")),
+        Base(_coded("delta+ternary")),
+        Base(_coded("delta+quinary", compression="none")),
     ]
 
 
