@@ -137,10 +137,14 @@ def level_quantise(values: np.ndarray, chunk: int, levels: int, step: float) -> 
 
 def level_dequantise(codes: np.ndarray, scales: np.ndarray, chunk: int, levels: int) -> np.ndarray:
     """The float32 values both ends compute from (codes, scales): bit-identical on either side."""
-    magnitude = np.abs(codes.astype(np.int64))
-    chunk_of = np.arange(codes.size) // chunk
-    table = np.concatenate([np.zeros((scales.size // levels, 1), np.float32), scales.reshape(-1, levels)], axis=1)
-    return (np.sign(codes).astype(np.float32) * table[chunk_of, magnitude]).astype(np.float32)
+    blocks = np.zeros(-(-codes.size // chunk) * chunk, np.int8)
+    blocks[: codes.size] = codes
+    blocks = blocks.reshape(-1, chunk)  # [m, chunk]
+    per_level = scales.reshape(-1, levels)  # [m, levels]
+    magnitude = np.zeros(blocks.shape, np.float32)
+    for a in range(1, levels + 1):
+        magnitude += (np.abs(blocks) == a) * per_level[:, a - 1 : a]
+    return (np.sign(blocks) * magnitude).astype(np.float32).reshape(-1)[: codes.size]
 
 
 def _blocks(values: np.ndarray, chunk: int) -> np.ndarray:
@@ -160,9 +164,23 @@ def pack_codes(codes: np.ndarray, levels: int) -> np.ndarray:
     """int8 codes [n] in [-levels, levels] -> uint8 [ceil(n / per)]: ``per`` base-(2 levels + 1)
     digits a byte (5 ternary, 3 quinary), so zstd's byte-wise entropy coder sees their joint law."""
     base, per = _PACKING[levels]
-    digits = np.zeros(-(-codes.size // per) * per, np.int64)
-    digits[: codes.size] = codes % base  # -a -> base - a
-    return (digits.reshape(-1, per) * base ** np.arange(per)).sum(axis=1).astype(np.uint8)
+    digits = np.zeros(-(-codes.size // per) * per, np.uint8)
+    digits[: codes.size] = np.where(codes < 0, codes + base, codes)  # -a -> base - a
+    digits = digits.reshape(-1, per)
+    packed = np.zeros(digits.shape[0], np.uint8)
+    for k in range(per):  # uint8 all along: at most 2 * 81 + ... = 242 (ternary), 124 (quinary)
+        packed += digits[:, k] * np.uint8(base**k)
+    return packed
+
+
+def _unpack_table(levels: int) -> np.ndarray:
+    """[256, per] int8: the codes each byte packs (bytes that pack none: never looked up)."""
+    base, per = _PACKING[levels]
+    digits = (np.arange(256)[:, None] // base ** np.arange(per)) % base
+    return np.where(digits > levels, digits - base, digits).astype(np.int8)
+
+
+_UNPACK = {levels: _unpack_table(levels) for levels in _PACKING}
 
 
 def unpack_codes(packed: np.ndarray, size: int, levels: int, name: str) -> np.ndarray:
@@ -170,9 +188,7 @@ def unpack_codes(packed: np.ndarray, size: int, levels: int, name: str) -> np.nd
     base, per = _PACKING[levels]
     if packed.size and int(packed.max()) >= base**per:
         raise Rejected("bad_field", f"{name[:64]!r}: a byte of codes above {base**per - 1}")
-    digits = (packed.astype(np.int64)[:, None] // base ** np.arange(per)) % base
-    codes = digits.reshape(-1)[:size]
-    return np.where(codes > levels, codes - base, codes).astype(np.int8)
+    return _UNPACK[levels][packed].reshape(-1)[:size]
 
 
 def _gap_planes(index: np.ndarray) -> np.ndarray:

@@ -93,7 +93,7 @@ class _NewestJobThread:
 
 
 #: Deltas queued for one neighbour before they are replaced by one full snapshot.
-MAX_CHAIN = 4
+MAX_CHAIN = 64  # deltas queued for one slow link at most (the bytes rule below usually stops it first)
 
 
 class NeighbourSender(_NewestJobThread):
@@ -102,8 +102,10 @@ class NeighbourSender(_NewestJobThread):
     A put with congestion control BLOCK can wait on a cut or congested link for seconds; with
     one sender per neighbour (and keys addressed to that neighbour) it delays that neighbour's
     copy only, never the round loop nor the other neighbours. A full snapshot replaces whatever
-    waits; a delta is queued behind the frames still waiting, since each is the next one's base
-    (up to :data:`MAX_CHAIN`, then the full snapshot goes instead).
+    waits; a delta is queued behind the frames still waiting, since each is the next one's base,
+    until the queue would carry more bytes than the full snapshot (or :data:`MAX_CHAIN` frames):
+    then the full one goes instead. On a slow link a fixed short chain meant a full snapshot,
+    20 times a delta's bytes, every few rounds, which slowed the link further.
     """
 
     def __init__(self, net: Network, key_for_round: Callable[[int], str], log: Log) -> None:
@@ -120,7 +122,7 @@ class NeighbourSender(_NewestJobThread):
                 return
             if push is full or pending is None:
                 frames = [(round_index, push)]
-            elif len(pending[1]) < MAX_CHAIN:
+            elif len(pending[1]) < MAX_CHAIN and sum(len(f) for _, f in pending[1]) + len(push) < len(full):
                 frames = [*pending[1], (round_index, push)]
             else:
                 frames = [(round_index, full)]
@@ -128,6 +130,14 @@ class NeighbourSender(_NewestJobThread):
                 self._not_before = time.monotonic() + delay_s
             self._slot = (round_index, frames)
             self._cond.notify_all()
+
+    def resend(self, round_index: int, push: bytes, full: bytes, delay_s: float) -> None:
+        """``push`` of ``round_index`` once more (a link came back), unless that round or a newer
+        one is still waiting to go: it will go anyway."""
+        with self._cond:
+            if self._slot is not None and self._slot[0] >= round_index:
+                return
+        self.offer_frames(round_index, push, full, delay_s=delay_s)
 
     def _do(self, round_index: int, data: list[tuple[int, bytes]]) -> None:
         for k, frame in data:
@@ -249,6 +259,7 @@ class SnapshotExchange:
         self._pullers: dict[int, NeighbourPuller] = {}
         self._barrier_began: tuple[int, float] = (-1, 0.0)  # (round, monotonic) of the current barrier
         self.latest: tuple[int, bytes] | None = None  # (round, encoded) last published, lossless
+        self._last_push: bytes | None = None  # the push of that round (a delta in the delta modes)
         self.encoder = SnapshotEncoder(compression or CompressionConfig())
         self.bases = BaseBook()  # per neighbour the model its deltas are against
 
@@ -294,16 +305,20 @@ class SnapshotExchange:
         push, full = self.encoder.encode(msg, spec, compression, wire_dtype)
         self.net.set_latest(full, round=msg.round)
         self.latest = (msg.round, full)
+        self._last_push = push
         for sender in self._senders.values():
             sender.offer_frames(msg.round, push, full)
 
     def link_appeared(self, j: int) -> None:
-        """A link (re)appeared: snapshots pushed meanwhile found no subscriber. Push ours again
-        (the full one: the deltas between are lost) once the new session's subscriptions are
-        through (the barrier pulls theirs)."""
-        latest = self.latest
-        if latest is not None and j in self._senders:
-            self._senders[j].offer_frames(latest[0], latest[1], latest[1], delay_s=self.timing.resend_delay_s)
+        """A link (re)appeared: snapshots pushed meanwhile found no subscriber. Push our newest
+        again once the new session's subscriptions are through (the barrier pulls theirs). In a
+        delta mode that is the delta, not the full snapshot: a neighbour that still holds its
+        base (a flap: liveliness lost on a saturated link) takes it; one that lost deltas asks
+        for the full one (``base_missing``, a pull). Pushing the full snapshot on every flap put
+        16 MB on a 5 Mbit/s link, which held up its keep-alives into the next flap."""
+        latest, push = self.latest, self._last_push
+        if latest is not None and push is not None and j in self._senders:
+            self._senders[j].resend(latest[0], push, latest[1], delay_s=self.timing.resend_delay_s)
 
     # ------------------------------------------------------------------ in
     def on_theta(self, key: str, data: bytes) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -354,3 +355,47 @@ def test_config_refuses_what_cannot_work():
     for bad in ({"compression": "lz4"}, {"topk_fraction": 0.0}, {"topk_fraction": 0.9}, {"chunk": 3}):
         with pytest.raises(ValueError):
             CompressionConfig(**bad)
+
+
+class _Recorder:
+    """A Network stand-in that records puts (a unit test of one sender's queue)."""
+
+    def __init__(self) -> None:
+        self.puts: list[tuple[str, int]] = []
+        self.gate = threading.Event()
+
+    def publish(self, key: str, data: bytes) -> None:
+        self.gate.wait(10)
+        self.puts.append((key, len(data)))
+
+
+def test_a_slow_link_queues_deltas_until_they_would_outweigh_the_full_snapshot():
+    """While one put is stuck, deltas queue behind it (each is the next one's base); the full
+    snapshot replaces them only once the queue would carry more bytes than it. A resend of a round
+    that is already queued adds nothing."""
+    from protocol.exchange import NeighbourSender
+
+    net = _Recorder()
+    sender = NeighbourSender(net, lambda k: f"theta/{k}", lambda text: None)
+    try:
+        full, delta = b"F" * 1000, b"d" * 300
+        sender.offer_frames(1, delta, full)  # taken at once, stuck in publish
+        time.sleep(0.2)
+        for k in (2, 3, 4):  # 3 x 300 < 1000: queued
+            sender.offer_frames(k, delta, full)
+        sender.resend(4, delta, full, delay_s=0.0)  # round 4 waits already
+        sender.offer_frames(5, delta, full)  # 4 x 300 > 1000: the full snapshot instead
+        net.gate.set()
+        sender.idle(10)
+        assert net.puts == [("theta/1", 300), ("theta/5", 1000)], net.puts
+        net.puts.clear()
+        net.gate.clear()
+        sender.offer_frames(6, delta, full)
+        time.sleep(0.2)
+        for k in (7, 8):
+            sender.offer_frames(k, delta, full)
+        net.gate.set()
+        sender.idle(10)
+        assert net.puts == [("theta/6", 300), ("theta/7", 300), ("theta/8", 300)], net.puts
+    finally:
+        sender.close()

@@ -42,7 +42,8 @@ def test_a_restarted_robot_without_bases_joins_from_full_snapshots_then_takes_de
     assert tel3[0].wire_ratio > 0.5  # robot 3's first push of its new life is full: it has no public copy yet
     assert all(t.wire_ratio < 0.1 for t in tel3[1:]), [t.wire_ratio for t in tel3]
     ratios = [t.wire_ratio for t in swarm.telemetry(2) if t.round > back]
-    # robot 2 pushes its full snapshot once, to the link that reappeared (the deltas between were lost;
-    # when it sees the link come back depends on the machine's load), and deltas before and after
+    # robot 2 pushes its newest delta again to the link that reappeared; robot 3, without its base,
+    # pulls the full snapshot instead. At most one round counts a full push (when robot 2 sees the
+    # link come back depends on the machine's load), and deltas before and after
     full = [k for k, r in enumerate(ratios) if r is None or r >= 0.1]
     assert len(ratios) > 2 and len(full) <= 1 and ratios[-1] < 0.1, ratios
