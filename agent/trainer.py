@@ -26,6 +26,7 @@ from agent.data.views import Views
 from agent.geometry import sim3_decompose, sim3_from_params, sim3_inverse, so3_exp, transform_c2w
 from agent.metrics import psnr, ssim
 from agent.nerf.field import FieldConfig, NGPField
+from agent.nerf.losses import distortion_loss
 from agent.nerf.occupancy import OccupancyConfig, OccupancyGrid
 from agent.camera import pixel_centre
 from agent.config_io import InvalidValue, check
@@ -118,10 +119,14 @@ class TrainConfig:
     cameras: CameraRefineConfig = config_field(default_factory=CameraRefineConfig)
     depth: DepthConfig = config_field(default_factory=DepthConfig)
     appearance: AppearanceConfig = config_field(default_factory=AppearanceConfig)
+    # Weight of the distortion loss (agent.nerf.losses): compact weights along each ray, against
+    # floaters in front of far walls. Off by default: nerfacto's 0.002 cost the centralised room
+    # model 8.6 dB here, though it helped a weakly-coupled swarm (docs/results.md, "Room").
+    distortion: float = 0.0
 
     def __post_init__(self) -> None:
-        check(self, rays_per_step=">= 1", target_samples_per_step=">= 0", min_rays_per_step=">= 1",
-              total_steps=">= 1", seed="in [0, 9.2e18)", init_seed="in [0, 9.2e18)")
+        check(self, distortion=">= 0", rays_per_step=">= 1", target_samples_per_step=">= 0",
+              min_rays_per_step=">= 1", total_steps=">= 1", seed="in [0, 9.2e18)", init_seed="in [0, 9.2e18)")
         try:
             kind = torch.device(self.device).type
         except (RuntimeError, TypeError):
@@ -395,6 +400,8 @@ class RobotTrainer:
             pred = self.appearance.apply(self.appearance.params[img], out.rgb, out.opacity, bg)
         rgb_loss = ((pred - target) ** 2).mean()
         loss = rgb_loss + (self.appearance.penalty() if cfg.appearance.enabled else 0.0)
+        if cfg.distortion and out.weights is not None:
+            loss = loss + cfg.distortion * distortion_loss(out.weights, out.samples)
         depth_loss = torch.zeros((), device=self.device)
         if cfg.depth.weight > 0 and self.depth_prior is not None:
             prior = self.depth_prior[img, row, col]  # [n] local z-depth, 0 = none

@@ -25,13 +25,15 @@ class RenderOutput:
     opacity: Tensor  # [R] accumulated alpha
     num_samples: int  # samples evaluated with gradients
     num_visible: int  # of those, samples in front of early termination (transmittance > eps)
+    weights: Tensor | None = None  # [S] each sample's compositing weight (for regularisers)
+    samples: Samples | None = None  # the samples the weights belong to
 
 
-def composite(sigma: Tensor, rgb: Tensor, samples: Samples) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Per-ray colour, expected distance and opacity, and each sample's transmittance.
+def composite(sigma: Tensor, rgb: Tensor, samples: Samples) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Per-ray colour, expected distance and opacity, and each sample's transmittance and weight.
 
-    sigma: [S], rgb: [S, 3] -> (rgb [R, 3], t [R], opacity [R], transmittance [S]) with
-    ``w_k = T_k (1 - exp(-sigma_k dt_k))``, ``T_k = exp(-sum_{j<k} sigma_j dt_j)``.
+    sigma: [S], rgb: [S, 3] -> (rgb [R, 3], t [R], opacity [R], transmittance [S], weights [S])
+    with ``w_k = T_k (1 - exp(-sigma_k dt_k))``, ``T_k = exp(-sum_{j<k} sigma_j dt_j)``.
     """
     r = samples.num_rays
     sigma_dt = sigma * samples.dt
@@ -41,7 +43,7 @@ def composite(sigma: Tensor, rgb: Tensor, samples: Samples) -> tuple[Tensor, Ten
     color = torch.zeros(r, 3, dtype=rgb.dtype, device=rgb.device).index_add(0, idx, weights[:, None] * rgb)
     dist = torch.zeros(r, dtype=rgb.dtype, device=rgb.device).index_add(0, idx, weights * samples.t_mid)
     opacity = torch.zeros(r, dtype=rgb.dtype, device=rgb.device).index_add(0, idx, weights)
-    return color, dist, opacity, transmittance
+    return color, dist, opacity, transmittance, weights
 
 
 def render_rays(
@@ -76,12 +78,12 @@ def render_rays(
     idx = samples.ray_index
     x = box_rays.origins[idx] + samples.t_mid[:, None] * box_rays.directions[idx]  # [S, 3], differentiable
     sigma, rgb = field(grid_of(x), box_rays.directions[idx], level_weights)
-    color, dist, opacity, transmittance = composite(sigma, rgb, samples)
+    color, dist, opacity, transmittance, weights = composite(sigma, rgb, samples)
     bg = background.expand_as(color) if background.ndim == 1 else background
     color = color + (1 - opacity[:, None]) * bg
     visible = int((transmittance.detach() > march_cfg.early_stop_eps).sum())
     return RenderOutput(rgb=color, depth=dist * box_rays.z_per_t, opacity=opacity, num_samples=len(samples),
-                        num_visible=visible)
+                        num_visible=visible, weights=weights, samples=samples)
 
 
 @torch.no_grad()

@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from agent.nerf.losses import distortion_loss
 from agent.nerf.occupancy import OccupancyConfig, OccupancyGrid
 from agent.nerf.rays import Rays, pixel_rays
 from agent.nerf.renderer import composite, render_rays
@@ -33,7 +34,7 @@ def test_a_homogeneous_slab_gives_the_analytic_opacity_depth_and_colour():
     mid = (a + b) / 2
     red, blue = torch.tensor([1.0, 0, 0], dtype=D), torch.tensor([0, 0, 1.0], dtype=D)
     rgb = torch.where((t < mid)[:, None], red, blue)  # [S, 3]: front half red, back half blue
-    color, dist, opacity, _ = composite(density, rgb, samples)  # [R, 3], [R], [R]
+    color, dist, opacity, _, _ = composite(density, rgb, samples)  # [R, 3], [R], [R]
 
     thick = b - a
     assert float(opacity[0]) == pytest.approx(1 - math.exp(-sigma * thick), abs=1e-9)
@@ -214,3 +215,27 @@ def test_render_rays_composites_onto_the_background_where_nothing_is_hit():
                       MarchConfig(step_size=1e-2), box)
     assert torch.allclose(out.rgb[0], torch.full((3,), 0.5), atol=1e-4)  # hits the slab: its grey
     assert torch.allclose(out.rgb[1], bg[1]) and float(out.opacity[1]) == 0  # misses the box: background
+
+
+def test_distortion_loss_is_the_double_sum_and_prefers_one_compact_interval():
+    """The linear-time form equals mip-NeRF 360's double sum over every ray's samples, and the same
+    opacity concentrated at one depth costs less than spread over the ray (a floater in front)."""
+    gen = torch.Generator().manual_seed(3)
+    counts = [5, 1, 9]
+    idx = torch.repeat_interleave(torch.arange(3), torch.tensor(counts))
+    t = torch.cat([torch.sort(torch.rand(c, generator=gen) * 6)[0] for c in counts])
+    dt = torch.rand(len(t), generator=gen) * 0.1 + 0.01
+    w = torch.rand(len(t), generator=gen, dtype=torch.float64).float()
+    samples = Samples(ray_index=idx, t_mid=t, dt=dt, num_rays=3)
+    want = 0.0
+    for r in range(3):
+        m = idx == r
+        s, ds, wr = t[m] / (1 + t[m]), dt[m] / (1 + t[m]) ** 2, w[m]
+        want += float((wr[:, None] * wr[None, :] * (s[:, None] - s[None, :]).abs()).sum() + (wr**2 * ds).sum() / 3)
+    assert abs(float(distortion_loss(w, samples)) - want / 3) < 1e-5
+    t2 = torch.linspace(0.5, 5.0, 10)
+    one = Samples(ray_index=torch.zeros(10, dtype=torch.long), t_mid=t2, dt=torch.full((10,), 0.05), num_rays=1)
+    compact = torch.zeros(10)
+    compact[7] = 0.9
+    spread = torch.full((10,), 0.09)
+    assert float(distortion_loss(compact, one)) < float(distortion_loss(spread, one)) / 10
