@@ -374,11 +374,12 @@ class SnapshotExchange:
             return None
         replies = self.net.query_all(self.keys.latest_since(j, min_round), timeout=self.timing.join_timeout_s,
                                      block=block)
-        valid = [m for key, data in replies if (m := self._latest_reply(j, key, data)) is not None
-                 and (at_most is None or m.round <= at_most)]
+        valid = [m for key, data in replies if (m := self._latest_reply(j, key, data, at_most)) is not None]
         return min(valid, key=lambda m: m.round, default=None)
 
-    def _latest_reply(self, j: int, key: str, data: bytes) -> ThetaSnapshot | None:
+    def _latest_reply(self, j: int, key: str, data: bytes, at_most: int | None) -> ThetaSnapshot | None:
+        """A reply, validated; only then may it become j's base (a forged reply of a later round
+        taken as the base would make every real delta after it look old)."""
         try:
             if key != self.keys.latest(j):
                 raise Rejected("sender_mismatch", f"asked robot {j}'s latest, the reply is on {key[:120]!r}")
@@ -388,6 +389,8 @@ class SnapshotExchange:
             last = self.mailbox.last_round
             if last is not None and msg.round > last:
                 raise Rejected("too_far_ahead", f"round {msg.round}, the last round is {last}")
+            if at_most is not None and msg.round > at_most:
+                return None  # past what j says it has completed: nobody vouches for it
             got = self.bases.resolve(msg, self.expect.spec)
             if got == "old":
                 return None
