@@ -86,7 +86,8 @@ class DaemonConfig:
     realign_every: int = 2
     realign_from_field_after: int = 4
     plateau: PlateauRule = field(default_factory=PlateauRule)  # when a flat, high loss is worth a warning
-    # How snapshots go on the wire ([daemon.exchange]): none | fp16 | int8 | delta+int8 | delta+topk
+    isolated_after: int = 3  # warn after this many rounds in a row without any neighbour's snapshot (0 = never)
+    # How snapshots go on the wire ([daemon.exchange]): delta+quinary (default) | none (float32) | ...
     exchange: CompressionConfig = field(default_factory=CompressionConfig)
 
     def __post_init__(self) -> None:
@@ -97,6 +98,8 @@ class DaemonConfig:
         if self.wire_dtype != "float32" and self.exchange.compression != "none":
             raise ValueError(f"daemon.wire_dtype = {self.wire_dtype!r} and daemon.exchange.compression = "
                              f"{self.exchange.compression!r}: choose one (compression = \"fp16\" is float16)")
+        if self.isolated_after < 0:
+            raise ValueError(f"isolated_after must be >= 0 (0 = never warn), got {self.isolated_after!r}")
         if self.silent_after_s < 2 * self.heartbeat_s:
             raise ValueError(f"silent_after_s ({self.silent_after_s}) must be at least two heartbeats "
                              f"({2 * self.heartbeat_s} s): one lost heartbeat must not count as silence")
@@ -204,6 +207,7 @@ class Daemon:
         self._last_heard: dict[int, ThetaSnapshot] = {}
         self._rgb_losses: list[float] = []
         self._warned_flat = False
+        self._isolated_rounds = 0  # consecutive rounds in consensus without hearing any neighbour
         self._round_compute_s: float | None = None  # our last round's training time: may we train through a gap?
 
     def _model_changed(self) -> None:
@@ -411,7 +415,27 @@ class Daemon:
                        seconds_compute=t_compute, seconds_wait=waited, pose7=self._pose()["params7"])
         (self.report.warn if record.alignment == "unaligned" else self.report.say)(record.log_line(self.training.rounds))
         self._warn_if_flat(stats.rgb_loss)
+        self._warn_if_isolated(record.heard if aligned else None)
         return 1
+
+    def _warn_if_isolated(self, heard: list[int] | None) -> None:
+        """Say it when an aligned robot hears none of its neighbours for ``isolated_after`` rounds
+        in a row (it trains alone, and nothing else in its log line says why), and when it hears
+        them again. ``heard`` None: not in consensus (unaligned), which has warnings of its own."""
+        if heard is None or heard or not self.exchange.neighbours:
+            if heard and self._isolated_rounds >= self.cfg.isolated_after > 0:
+                self.report.say(f"hears its neighbours again ({heard}) after {self._isolated_rounds} rounds alone")
+            self._isolated_rounds = 0
+            return
+        self._isolated_rounds += 1
+        if self._isolated_rounds != self.cfg.isolated_after:
+            return
+        mb = 4 * self.spec.num_values / 1e6
+        self.report.event("isolated", rounds=self._isolated_rounds, neighbours=sorted(self.exchange.neighbours))
+        self.report.warn(f"heard none of its neighbours {sorted(self.exchange.neighbours)} for {self._isolated_rounds} "
+                         f"rounds: it trains alone. Are they up and reachable? On a slow link a snapshot may never get "
+                         f"through: this field is {mb:.1f} MB at float32, sent as {self.cfg.exchange.compression!r} "
+                         "(daemon.exchange.compression)")
 
     def _warn_if_flat(self, rgb_loss: float) -> None:
         """Say it once when the photometric loss stops moving while still high (agent.telemetry.PlateauRule)."""

@@ -283,8 +283,11 @@ def test_lossy_slow_link_still_carries_the_model(tmp_path, fault_free):
         recs = {r.round: r for r in telemetry(out, i)}
         late = [k for k in recs if k > netem["robot_rounds"][str(i)] + 1]
         assert late and max(recs) == ROUNDS and (out / f"robots/{i}/done.json").is_file()
-        # whole snapshots (~0.25 MB at ~30 KB/s of TCP goodput at this loss and delay) still cross the link
-        assert sum(recs[k].bytes_in.get(peer, 0) for k in late) > 200_000, {k: recs[k].bytes_in for k in recs}
+        # the snapshots (delta+quinary, 15-35 KB; a full one, ~0.27 MB, when pulled) still cross the
+        # link at ~30 KB/s of TCP goodput at this loss and delay, and are used: heard in every round
+        # in the run measured (bytes count in the round they arrive, which may be the one before)
+        assert sum(recs[k].bytes_in.get(peer, 0) for k in late) > 50_000, {k: recs[k].bytes_in for k in recs}
+        assert sum(peer in recs[k].heard for k in late) >= len(late) - 1, {k: recs[k].heard for k in recs}
     relay_log = out / "logs/relay-1-2.log"
     if relay_log.is_file():  # the userspace emulator (no sch_netem here): it really dropped packets ...
         events = [json.loads(l) for l in relay_log.read_text().splitlines() if l.startswith("{")]

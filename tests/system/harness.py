@@ -173,7 +173,8 @@ def make_swarm(tmp: Path, robots: int = 3, topology: str = "full", frame: str = 
 
 def simulate(swarm: Swarm, overrides: list[str] = (), compression=None):
     """The in-process simulation of the same swarm (same seeds), with 1 torch thread like the daemons;
-    with ``compression`` (a CompressionConfig), its snapshots go through the daemons' encode/decode."""
+    its snapshots go through the daemons' encode/decode with ``compression`` (a CompressionConfig;
+    None: the swarm file's ``[daemon.exchange]``)."""
     import torch
 
     from agent.data.folder import read_scene
@@ -187,9 +188,8 @@ def simulate(swarm: Swarm, overrides: list[str] = (), compression=None):
     views = {i: load_views(swarm.root / f"robot{i}") for i in cfg.swarm.robots}
     scene = read_scene(base / cfg.swarm.scene)
     sim = Simulation(views, {i: topo.neighbours(i) for i in views}, scene.box_from_shared, cfg.training)
-    if compression is not None:
-        from agent.swarm import ProtocolWire
+    from agent.swarm import ProtocolWire
 
-        sim.wire = ProtocolWire(compression, next(iter(sim.thetas.values())), list(views))
+    sim.wire = ProtocolWire(compression or cfg.daemon.exchange, next(iter(sim.thetas.values())), list(views))
     sim.run()
     return sim

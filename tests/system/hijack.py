@@ -33,6 +33,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from protocol import codec  # noqa: E402
+from protocol.compression import BaseBook  # noqa: E402
 from protocol.messages import ThetaSnapshot  # noqa: E402
 
 FUTURE = (3, 6)  # rounds ahead of a real snapshot its copies claim
@@ -110,17 +111,28 @@ def main(swarm_toml: str, duration: float, listen: str, cert_dir: str | None = N
         if first:
             threading.Thread(target=copy, args=(msg, parsed.receiver), daemon=True).start()
 
+    # The swarm's pushes are deltas (delta+quinary, the default): the rogue follows each sender's
+    # model from theta^0 as a receiver does, and forges plain float32 frames of it
+    book = BaseBook()
+    for j in targets:
+        book.seed(j, {n: t.numpy() for n, t in setup.trainer.theta().items()})
+
+    def tensors_of(msg: ThetaSnapshot) -> dict:
+        got = book.resolve(msg, spec)
+        return zeros if isinstance(got, str) else got.tensors
+
     def copy(msg: ThetaSnapshot, to: int) -> None:
         j, k = msg.sender, msg.round
         try:
-            other = {n: a + 0.5 for n, a in msg.tensors.items()}
+            tensors = tensors_of(msg)
+            other = {n: a + 0.5 for n, a in tensors.items()}
             time.sleep(REPLAY_DELAY_S)
             net.publish(keys.theta(j, k, to=to), snapshot(j, k, other))
             with lock:
                 sent["replays"] += 1
             for ahead in FUTURE:
                 if k + ahead <= cfg.training.rounds:
-                    net.publish(keys.theta(j, k + ahead, to=to), snapshot(j, k + ahead, msg.tensors))
+                    net.publish(keys.theta(j, k + ahead, to=to), snapshot(j, k + ahead, tensors))
                     with lock:
                         sent["future_copies"] += 1
         except Exception as e:

@@ -84,6 +84,27 @@ def test_a_line_of_three_in_one_process_matches_the_simulation(tmp_path):
         assert all(r.heard == line and r.bytes_in for r in records), records
 
 
+def test_a_robot_that_hears_no_neighbour_for_three_rounds_says_so_once(tmp_path):
+    """Two robots whose link is down (a link too slow for any snapshot looked just like this: robots
+    training alone, heard [] on every log line, and nothing else said) warn once, at the third
+    round without a snapshot, with an event."""
+    from agent.telemetry import read_events
+
+    torch.set_num_threads(1)
+    swarm = make_swarm(tmp_path, robots=2, topology="full", training={"rounds": 5, "steps_per_round": 2})
+    warnings: list[str] = []
+    cfg = from_dict(DaemonConfig, {"startup_wait_s": 0.5, "round_timeout_s": 1.0, "initial_pose": "identity",
+                                   "linger_s": 0.2, "threads": 1, "silent_after_s": 1.0, "heartbeat_s": 0.2})
+    run_in_process(swarm, None, cfg, links=[], warn=warnings.append)
+    for i in swarm.robots:
+        assert all(r.heard == [] for r in read_telemetry(RunFolder(swarm.run_dir(i)).telemetry))
+        isolated = [e for e in read_events(RunFolder(swarm.run_dir(i)).events) if e["event"] == "isolated"]
+        assert len(isolated) == 1 and isolated[0]["round"] == 3, isolated
+    said = [w for w in warnings if "heard none of its neighbours" in w]
+    assert sorted(w.split("]")[0] for w in said) == ["[robot 1", "[robot 2"], warnings
+    assert all("delta+quinary" in w and "MB at float32" in w for w in said), said
+
+
 def test_a_loss_that_stays_flat_and_high_is_said_once(tmp_path):
     """A field that learns nothing (learning rate ~0 here; a bounded box around a room in real life)
     used to go flat silently; the daemon warns once, with an event."""
