@@ -351,6 +351,34 @@ def test_a_lost_push_is_made_good_by_a_pull_of_the_full_snapshot_over_the_networ
             n.close()
 
 
+def test_a_latest_reply_past_the_claimed_round_never_becomes_the_base():
+    """A reply of a round past what the sender claims (a forgery: nobody vouches for it) is
+    dropped before it is resolved; taken as the base, it made every real delta after it "old"."""
+    hub = LoopbackHub(links=[(1, 2)])
+    keys = Keys(SWARM)
+    nets = {i: LoopbackNetwork(hub, keys, i).open() for i in (1, 2)}
+    timing = ExchangeTiming(round_timeout_s=2.0, pull_after_s=0.2, silent_after_s=3.0, join_timeout_s=1.0,
+                            resend_delay_s=0.1)
+    ex = SnapshotExchange(nets[2], keys, 2, frozenset({1}), Mailbox(max_ahead=4), LastHeard(), timing,
+                          threading.Event(), lambda s: None, lambda kind, **f: None, lambda r, d: None,
+                          compression=_cfg("delta+quinary"))
+    ex.expect = expectation()
+    ex.seed(small_tensors(0))
+    try:
+        forged = ThetaSnapshot(SWARM, 1, 3, 0, SPEC.signature(), small_tensors(1))
+        nets[1].set_latest(codec.encode(forged, spec=SPEC), round=3)
+        assert ex.fetch_latest(1, at_most=1) is None
+        assert ex.bases.held_round(1) == -1  # still theta^0: robot 1's real round-1 delta resolves
+        enc = SnapshotEncoder(_cfg("delta+quinary"))
+        enc.seed(small_tensors(0))
+        push, _ = enc.encode(ThetaSnapshot(SWARM, 1, 1, 0, SPEC.signature(), small_tensors(2)), SPEC, "zstd")
+        got = ex.bases.resolve(codec.decode(push, expectation(), kind="theta"), SPEC)
+        assert not isinstance(got, str), got
+    finally:
+        for n in nets.values():
+            n.close()
+
+
 def test_config_refuses_what_cannot_work():
     for bad in ({"compression": "lz4"}, {"topk_fraction": 0.0}, {"topk_fraction": 0.9}, {"chunk": 3}):
         with pytest.raises(ValueError):
