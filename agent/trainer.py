@@ -121,7 +121,7 @@ class TrainConfig:
     appearance: AppearanceConfig = config_field(default_factory=AppearanceConfig)
     # Weight of the distortion loss (agent.nerf.losses): compact weights along each ray, against
     # floaters in front of far walls. Off by default: nerfacto's 0.002 cost the centralised room
-    # model 8.6 dB here, though it helped a weakly-coupled swarm (docs/results.md, "Room").
+    # model 8.6 dB, though it helped a weakly coupled swarm there (docs/results.md, the room).
     distortion: float = 0.0
 
     def __post_init__(self) -> None:
