@@ -36,6 +36,7 @@ from torch import Tensor
 from agent.align import AlignConfig
 from agent.bootstrap import Bootstrap, BootstrapTiming
 from agent.checkpoint import CheckpointError, RobotCheckpoint, RunFolder, load_into
+from agent.config_io import check
 from agent.data.views import Views
 from agent.geometry import pose_summary
 from agent.swarm import RobotSetup, SwarmTrainingConfig, build_robot
@@ -98,8 +99,7 @@ class DaemonConfig:
         if self.wire_dtype != "float32" and self.exchange.compression != "none":
             raise ValueError(f"daemon.wire_dtype = {self.wire_dtype!r} and daemon.exchange.compression = "
                              f"{self.exchange.compression!r}: choose one (compression = \"fp16\" is float16)")
-        if self.isolated_after < 0:
-            raise ValueError(f"isolated_after must be >= 0 (0 = never warn), got {self.isolated_after!r}")
+        check(self, isolated_after=">= 0")
         if self.silent_after_s < 2 * self.heartbeat_s:
             raise ValueError(f"silent_after_s ({self.silent_after_s}) must be at least two heartbeats "
                              f"({2 * self.heartbeat_s} s): one lost heartbeat must not count as silence")
@@ -215,8 +215,8 @@ class Daemon:
         self.spec = model_spec(self.setup)
         self.exchange.expect = None if self.bootstrap.box_pending else codec.Expectation(
             swarm=self.swarm.name, spec=self.spec, allowed_senders=frozenset(self.swarm.topology.ids),
-            max_wire_bytes=2 * self.spec.num_values * 4 + (1 << 20),
-            max_decompressed_bytes=self.spec.num_values * 4 + (1 << 20))
+            max_wire_bytes=2 * self.spec.float32_bytes + (1 << 20),
+            max_decompressed_bytes=self.spec.float32_bytes + (1 << 20))
 
     # ------------------------------------------------------------------ callbacks
     def _claimed_round(self, j: int) -> int | None:
@@ -430,7 +430,7 @@ class Daemon:
         self._isolated_rounds += 1
         if self._isolated_rounds != self.cfg.isolated_after:
             return
-        mb = 4 * self.spec.num_values / 1e6
+        mb = self.spec.float32_bytes / 1e6
         self.report.event("isolated", rounds=self._isolated_rounds, neighbours=sorted(self.exchange.neighbours))
         self.report.warn(f"heard none of its neighbours {sorted(self.exchange.neighbours)} for {self._isolated_rounds} "
                          f"rounds: it trains alone. Are they up and reachable? On a slow link a snapshot may never get "
@@ -459,7 +459,7 @@ class Daemon:
         before = stats_before.get("links", {})
         links = {j: b - before.get(j, 0) for j, b in self.exchange.bytes_sent().items()}
         links = {j: b for j, b in links.items() if b}
-        raw = 4 * self.spec.num_values
+        raw = self.spec.float32_bytes
         return links, (sum(links.values()) / len(links) / raw if links and raw else None)
 
     def _pose(self) -> dict:

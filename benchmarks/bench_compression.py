@@ -70,7 +70,7 @@ def run_mode(mode: str, split, neighbours, cfg: SwarmTrainingConfig, topk: float
     sim.on_public = on_public
     sim.wire = ProtocolWire(compression, next(iter(sim.thetas.values())), sorted(robots))
     sim.run()
-    raw = 4 * sim.wire.spec.num_values
+    raw = sim.wire.spec.float32_bytes
     pushes = [b for sizes in sim.wire.sent.values() for b in sizes]
     scores = {i: evaluate_robot(t, ev, i).summary() for i, t in sim.trainers.items()}
     return {

@@ -165,6 +165,11 @@ class ModelSpec:
     def num_values(self) -> int:
         return sum(p.size for p in self.params)
 
+    @property
+    def float32_bytes(self) -> int:
+        """The raw size of one snapshot at float32: what compression ratios are quoted against."""
+        return 4 * self.num_values
+
     def canonical_json(self) -> str:
         doc = {
             "params": [[p.name, list(p.shape), p.dtype] for p in self.params],
