@@ -4,7 +4,8 @@ snapshots on 20 and 5 Mbit/s links, in one invocation on the same data and round
     sudo .venv/bin/python benchmarks/bench_links.py [--out runs/bench_links] [--rounds 10] \\
         [--runs none@0,delta+quinary@20,delta+quinary@5]
 
-Each run is ``lego-5-ring`` in netns mode (root: the caps are ``tc`` on veth pairs) with
+Each run is ``lego-5-ring`` in netns mode (root: the caps are `tc`, or the link emulator where
+the kernel lacks sch_netem) with
 ``RUN = compression@rate_mbit`` (rate 0: uncapped), ``--rounds`` rounds and no baselines.
 Prints, per run: seconds per round (from the first robot's first round to the last robot's last
 round, so start-up is left out) and its ratio to the first run, bytes per link per round, the
