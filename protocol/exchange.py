@@ -96,6 +96,16 @@ class _NewestJobThread:
 MAX_CHAIN = 64  # deltas queued for one slow link at most (the bytes rule below usually stops it first)
 
 
+def _chain(chain: tuple[tuple[int, bytes], ...], delta: tuple[int, bytes], full_bytes: int
+           ) -> tuple[tuple[int, bytes], ...]:
+    """``chain`` with ``delta`` appended, its oldest frames dropped while it holds more than
+    :data:`MAX_CHAIN` frames or as many bytes as the full snapshot (then the full one is cheaper)."""
+    frames = [*chain, delta]
+    while frames and (len(frames) > MAX_CHAIN or sum(len(f) for _, f in frames) >= full_bytes):
+        frames.pop(0)
+    return tuple(frames)
+
+
 class NeighbourSender(_NewestJobThread):
     """Delivers this robot's newest snapshot to one neighbour.
 
@@ -260,6 +270,7 @@ class SnapshotExchange:
         self._barrier_began: tuple[int, float] = (-1, 0.0)  # (round, monotonic) of the current barrier
         self.latest: tuple[int, bytes] | None = None  # (round, encoded) last published, lossless
         self._last_push: bytes | None = None  # the push of that round (a delta in the delta modes)
+        self._deltas: tuple[tuple[int, bytes], ...] = ()  # (base round, push) leading to ``latest``, served with it
         self.encoder = SnapshotEncoder(compression or CompressionConfig())
         self.bases = BaseBook()  # per neighbour the model its deltas are against
 
@@ -301,9 +312,12 @@ class SnapshotExchange:
 
     # ------------------------------------------------------------------ out
     def publish(self, msg: ThetaSnapshot, spec: ModelSpec, wire_dtype: str, compression: str) -> None:
-        """Encode once; serve the lossless frame as ``latest``; hand the push to every neighbour's sender."""
+        """Encode once; serve the lossless frame as ``latest``, with the deltas that lead to it;
+        hand the push to every neighbour's sender."""
+        base = self.encoder.public()
         push, full = self.encoder.encode(msg, spec, compression, wire_dtype)
-        self.net.set_latest(full, round=msg.round)
+        self._deltas = () if push is full or base is None else _chain(self._deltas, (base[0], push), len(full))
+        self.net.set_latest(full, round=msg.round, deltas=self._deltas)
         self.latest = (msg.round, full)
         self._last_push = push
         for sender in self._senders.values():
@@ -354,12 +368,15 @@ class SnapshotExchange:
         """A pushed snapshot may be at most one round past what its sender last said it has
         completed (its next snapshot races its next heartbeat). Further ahead nobody vouches for
         it, and taken in first it would shut out the real one (the mailbox keeps the first copy):
-        refused, and the barrier pulls the real snapshot once the sender says it has it."""
+        refused, and the barrier pulls the real snapshot once the sender says it has it. One round
+        past our own newest snapshot is not far ahead: a neighbour may have trained on it while
+        its heartbeat is on the way (refusing it cost a full snapshot: the next delta had no base)."""
         last = self.mailbox.last_round
         if last is not None and msg.round > last:
             raise Rejected("too_far_ahead", f"round {msg.round} from {msg.sender}, the last round is {last}")
         claim = self._claimed_round(msg.sender)
-        horizon = max(self.mailbox.current_round, claim if claim is not None else -1) + 1
+        published = self.latest[0] if self.latest is not None else -1  # j may have trained on it already
+        horizon = max(self.mailbox.current_round, claim if claim is not None else -1, published) + 1
         if msg.round > horizon:
             raise Rejected("ahead_of_sender", f"round {msg.round} from {msg.sender}, which says it has "
                                               f"completed {claim}")
@@ -369,17 +386,44 @@ class SnapshotExchange:
         """Neighbour j's newest snapshot of a round in [``min_round``, ``at_most``], from its
         ``latest`` queryable, validated; None if none came. Should several answers come (a forged
         queryable answers too), the one of the earliest round: joining low costs a catch-up,
-        joining at a forged round would cost the whole run."""
+        joining at a forged round would cost the whole run. We say which base of j we hold, so a
+        neighbour one lost delta behind is answered with the deltas since it, not the full model;
+        should they not fit our base after all, we ask once more for the full one."""
         if self.expect is None:
             return None
-        replies = self.net.query_all(self.keys.latest_since(j, min_round), timeout=self.timing.join_timeout_s,
+        held = self.bases.held_round(j)
+        msg, unfit = self._fetch(j, block, min_round, at_most, held if held is not None and held >= 0 else None)
+        if msg is None and unfit:
+            msg, _ = self._fetch(j, block, min_round, at_most, None)
+        return msg
+
+    def _fetch(self, j: int, block: bool, min_round: int, at_most: int | None, held: int | None
+               ) -> tuple[ThetaSnapshot | None, bool]:
+        """(the snapshot, whether a delta came that does not fit our base of j)."""
+        replies = self.net.query_all(self.keys.latest_since(j, min_round, held), timeout=self.timing.join_timeout_s,
                                      block=block)
-        valid = [m for key, data in replies if (m := self._latest_reply(j, key, data, at_most)) is not None]
-        return min(valid, key=lambda m: m.round, default=None)
+        checked = sorted((m for key, data in replies if (m := self._latest_reply(j, key, data, at_most)) is not None),
+                         key=lambda m: m.round)
+        ends: dict[int, ThetaSnapshot] = {}  # round -> an answer's newest model, the deltas before it dropped
+        unfit = False
+        for m in checked:  # oldest first: each delta of a chain is the base of the next
+            try:
+                got = self.bases.resolve(m, self.expect.spec)
+                if got == "missing" and held is None:
+                    raise Rejected("unknown_base", f"round {m.round}: a delta where the full snapshot was due")
+            except Rejected as e:
+                self._reject(e.reason, f"latest of robot {j}: {e.detail}")
+                continue
+            unfit |= got == "missing"
+            if isinstance(got, ThetaSnapshot):
+                if m.coded is not None and m.coded.base_round in ends:
+                    del ends[m.coded.base_round]
+                ends.setdefault(got.round, got)
+        return (ends[min(ends)] if ends else None), unfit
 
     def _latest_reply(self, j: int, key: str, data: bytes, at_most: int | None) -> ThetaSnapshot | None:
-        """A reply, validated; only then may it become j's base (a forged reply of a later round
-        taken as the base would make every real delta after it look old)."""
+        """A reply, decoded and checked; only then may it become j's base (a forged reply of a
+        later round taken as the base would make every real delta after it look old)."""
         try:
             if key != self.keys.latest(j):
                 raise Rejected("sender_mismatch", f"asked robot {j}'s latest, the reply is on {key[:120]!r}")
@@ -389,17 +433,11 @@ class SnapshotExchange:
             last = self.mailbox.last_round
             if last is not None and msg.round > last:
                 raise Rejected("too_far_ahead", f"round {msg.round}, the last round is {last}")
-            if at_most is not None and msg.round > at_most:
-                return None  # past what j says it has completed: nobody vouches for it
-            got = self.bases.resolve(msg, self.expect.spec)
-            if got == "old":
-                return None
-            if got == "missing":
-                raise Rejected("unknown_base", f"round {msg.round}: a delta where the full snapshot was due")
-            msg = got
         except Rejected as e:
             self._reject(e.reason, f"latest of robot {j}: {e.detail}")
             return None
+        if at_most is not None and msg.round > at_most:
+            return None  # past what j says it has completed: nobody vouches for it
         return msg
 
     def claimed_round(self, j: int) -> int | None:

@@ -6,6 +6,7 @@ Layout (``<swarm>`` is validated, robot ids and rounds are non-negative decimal 
     dinerf/<swarm>/theta/<id>/<round>/<to>  parameter snapshot of robot <id> after <round>, for <to>
     dinerf/<swarm>/latest/<id>          queryable: the newest snapshot of <id> (late join, restart)
     dinerf/<swarm>/latest/<id>?min_round=<k>   ... only if that snapshot is of round k or later
+    dinerf/<swarm>/latest/<id>?min_round=<k>;held=<b>   ... as the deltas from round b if cheaper
     dinerf/<swarm>/status/<id>          telemetry
     dinerf/<swarm>/keyframes/<id>       queryable: compact keyframe summary for coarse alignment
 
@@ -48,8 +49,9 @@ KEY_KINDS: dict[str, int] = {
     KIND_KEYFRAMES: 0,
 }
 
-#: Query parameter of :meth:`Keys.latest_since` (read back with :func:`min_round_of`).
+#: Query parameters of :meth:`Keys.latest_since` (read back with :func:`min_round_of`).
 MIN_ROUND_PARAM = "min_round"
+HELD_PARAM = "held"  # the round of the asker's base of that robot: the answer may be deltas from it
 
 _SWARM_RE = re.compile(r"[A-Za-z0-9_-]{1,64}")
 _CANONICAL_INT_RE = re.compile(r"0|[1-9][0-9]{0,9}")
@@ -121,10 +123,12 @@ class Keys:
     def latest(self, robot_id: int) -> str:
         return self._robot(KIND_LATEST, robot_id)
 
-    def latest_since(self, robot_id: int, min_round: int) -> str:
+    def latest_since(self, robot_id: int, min_round: int, held: int | None = None) -> str:
         """Selector for ``robot_id``'s newest snapshot, answered only if its round is >= ``min_round``:
-        a neighbour that has not got that far replies nothing, so asking costs no snapshot."""
-        return f"{self.latest(robot_id)}?{MIN_ROUND_PARAM}={_check_number(min_round, 'round')}"
+        a neighbour that has not got that far replies nothing, so asking costs no snapshot. With
+        ``held`` (the round of our base of it) the answer may be the deltas since that round."""
+        selector = f"{self.latest(robot_id)}?{MIN_ROUND_PARAM}={_check_number(min_round, 'round')}"
+        return selector if held is None else f"{selector};{HELD_PARAM}={_check_number(held, 'round')}"
 
     def status(self, robot_id: int) -> str:
         return self._robot(KIND_STATUS, robot_id)

@@ -19,7 +19,8 @@ import threading
 from collections import defaultdict
 from typing import Any, Callable, Iterable
 
-from protocol.keys import MIN_ROUND_PARAM, ForeignKey, Keys, min_round_of
+from protocol.keys import ForeignKey, Keys
+from protocol.network import Served
 
 __all__ = ["LoopbackHub", "LoopbackNetwork", "key_matches"]
 
@@ -114,7 +115,7 @@ class LoopbackNetwork:
         self._subs: list[_Sub] = []
         self._watchers: list[_Sub] = []
         self._seen_alive: frozenset[int] = frozenset()
-        self._served: dict[str, tuple[bytes | None, int | None]] = {}
+        self._served: dict[str, Served] = {}
         self._bytes_out: dict[str, int] = defaultdict(int)
         self._bytes_in: dict[int, int] = defaultdict(int)
         self._messages = {"in": 0, "out": 0}
@@ -202,22 +203,21 @@ class LoopbackNetwork:
             self._deliver(s.callback, key, data)
 
     # ------------------------------------------------------------------ queryables
-    def set_latest(self, data: bytes | None, round: int | None = None) -> None:
+    def set_latest(self, data: bytes | None, round: int | None = None,
+                   deltas: tuple[tuple[int, bytes], ...] = ()) -> None:
         with self._lock:
-            self._served[self.keys.latest(self.robot_id)] = (data, round)
+            self._served[self.keys.latest(self.robot_id)] = Served(data, round, deltas)
 
     def set_keyframes(self, data: bytes | None) -> None:
         with self._lock:
-            self._served[self.keys.keyframes(self.robot_id)] = (data, None)
+            self._served[self.keys.keyframes(self.robot_id)] = Served(data)
 
-    def _answer(self, key: str, wanted: int | None) -> bytes | None:
+    def _answer(self, key: str, params: dict[str, str]) -> list[bytes]:
         with self._lock:
-            data, served_round = self._served.get(key, (None, None))
-            if data is None or (wanted is not None and served_round is not None and served_round < wanted):
-                return None
-            self._bytes_out[self._kind_of(key)] += len(data)
-            self._messages["out"] += 1
-            return data
+            frames = self._served.get(key, Served(None)).answer(params)
+            self._bytes_out[self._kind_of(key)] += sum(map(len, frames))
+            self._messages["out"] += len(frames)
+            return frames
 
     def query(self, key: str, timeout: float | None = None, block: bool = True) -> bytes | None:
         replies = self.query_all(key, timeout, block, first_only=True)
@@ -225,14 +225,14 @@ class LoopbackNetwork:
 
     def query_all(self, key_expr: str, timeout: float | None = None, block: bool = True,
                   first_only: bool = False) -> list[tuple[str, bytes]]:
-        selector, _, params = key_expr.partition("?")
-        wanted = min_round_of(dict(p.split("=", 1) for p in params.split(";") if "=" in p).get(MIN_ROUND_PARAM))
+        selector, _, query = key_expr.partition("?")
+        params = dict(p.split("=", 1) for p in query.split(";") if "=" in p)
         out = []
         for peer in self.hub.peers(self.robot_id):
             if peer is self:
                 continue
             for key in peer._served_keys(selector):
-                if (data := peer._answer(key, wanted)) is not None:
+                for data in peer._answer(key, params):
                     self._count_in(key, len(data))
                     out.append((key, data))
                     if first_only:

@@ -48,7 +48,8 @@ from typing import Any, Callable
 
 import zenoh
 
-from protocol.keys import MIN_ROUND_PARAM, ForeignKey, Keys, min_round_of
+from protocol.keys import ForeignKey, Keys
+from protocol.network import Served
 
 log = logging.getLogger("dinerf.transport")
 
@@ -237,7 +238,7 @@ class ZenohTransport:
         self._messages_out = 0
         self._callback_errors = 0
         self._foreign_keys = 0
-        self._served: dict[str, tuple[bytes | None, int | None]] = {}  # key -> (data, its round)
+        self._served: dict[str, Served] = {}  # key -> what its queryable answers
         self._queryables: dict[str, Any] = {}
         self._publishers: dict[tuple[str, bool], Any] = {}
         self._publishers_lock = threading.Lock()
@@ -473,37 +474,37 @@ class ZenohTransport:
         return sub
 
     # ------------------------------------------------------------------ queryables
-    def _serve(self, key: str, data: bytes | None, round: int | None = None) -> None:
+    def _serve(self, key: str, served: Served) -> None:
         with self._lock:
-            self._served[key] = (data, round)
+            self._served[key] = served
             if key in self._queryables:
                 return
 
         def on_query(query: zenoh.Query) -> None:
             with query:
                 with self._lock:
-                    payload, served_round = self._served.get(key, (None, None))
-                wanted = min_round_of(query.parameters.get(MIN_ROUND_PARAM))
-                if payload is None or (wanted is not None and served_round is not None and served_round < wanted):
-                    return  # nothing (new enough) to give: the get ends without a reply
-                query.reply(key, payload)
-                with self._lock:
-                    self._bytes_out[self._kind_of(key)] += len(payload)
-                    self._messages_out += 1
+                    now = self._served.get(key, Served(None))
+                for payload in now.answer(dict(query.parameters)):  # none: the get ends without a reply
+                    query.reply(key, payload)
+                    with self._lock:
+                        self._bytes_out[self._kind_of(key)] += len(payload)
+                        self._messages_out += 1
 
         handle = self.session.declare_queryable(key, self._guard(f"queryable {key}", on_query))
         with self._lock:
             self._queryables[key] = handle
             self._handles.append(handle)
 
-    def set_latest(self, data: bytes | None, round: int | None = None) -> None:
+    def set_latest(self, data: bytes | None, round: int | None = None,
+                   deltas: tuple[tuple[int, bytes], ...] = ()) -> None:
         """Serve ``data`` (our newest encoded snapshot, of ``round``) on ``latest/<robot_id>``;
-        None serves nothing. A query for ``latest_since(id, k)`` gets it only if ``round >= k``."""
-        self._serve(self.keys.latest(self.robot_id), data, round)
+        None serves nothing. A query for ``latest_since(id, k)`` gets it only if ``round >= k``;
+        one that says which base it holds may get ``deltas`` instead (:meth:`Served.answer`)."""
+        self._serve(self.keys.latest(self.robot_id), Served(data, round, deltas))
 
     def set_keyframes(self, data: bytes | None) -> None:
         """Serve our encoded keyframe summary on ``keyframes/<robot_id>``."""
-        self._serve(self.keys.keyframes(self.robot_id), data)
+        self._serve(self.keys.keyframes(self.robot_id), Served(data))
 
     def query(self, key: str, timeout: float | None = None, block: bool = True) -> bytes | None:
         """First reply to a get on ``key``, or None if nobody answered before the timeout.

@@ -347,6 +347,9 @@ def role_self_check(args) -> None:
     served = net.query(net.keys.latest(0), timeout=2)
     served_since = [net.query(net.keys.latest_since(0, k), timeout=2) for k in (5, 6)]
     bad_parameter = net.query(net.keys.latest(0) + "?min_round=x", timeout=2)
+    net.set_latest(b"newest" * 4, round=5, deltas=((3, b"d4"), (4, b"d5")))  # the pushes since round 3
+    from_held = [[d.decode() for _, d in net.query_all(net.keys.latest_since(0, 5, held=h), timeout=2)]
+                 for h in (3, 4, 2)]
     missing = net.query(net.keys.latest(7), timeout=2)
     net.close()
     net.close()
@@ -357,7 +360,7 @@ def role_self_check(args) -> None:
         after_close = str(exc)
     emit("checked", delivered=delivered, callback_errors=errors, served=served.decode() if served else None,
          served_since=[x.decode() if x else None for x in served_since],
-         bad_parameter=bad_parameter.decode() if bad_parameter else None, missing=missing, after_close=after_close, stats=net.stats())
+         bad_parameter=bad_parameter.decode() if bad_parameter else None, from_held=from_held, missing=missing, after_close=after_close, stats=net.stats())
 
 
 ROLES = {

@@ -25,6 +25,7 @@ def test_build_and_parse_round_trip():
 def test_latest_since_carries_a_round_the_server_reads_back():
     k = Keys("s")
     assert k.latest_since(2, 7) == "dinerf/s/latest/2?min_round=7"
+    assert k.latest_since(2, 7, held=5) == "dinerf/s/latest/2?min_round=7;held=5"
     assert min_round_of("7") == 7 and min_round_of(None) is None
     for bad in ["", "-1", "07", "x", "1e3", str(2**31)]:  # malformed: treated as absent
         assert min_round_of(bad) is None

@@ -77,5 +77,7 @@ def test_callback_errors_are_contained_and_close_is_idempotent(peers):
     # latest_since: served only once that round is reached; a malformed parameter counts as absent
     assert got["served_since"] == ["newest", None]
     assert got["bad_parameter"] == "newest"
+    # held: the deltas since the asker's base, in order; a base not in the chain gets the full one
+    assert got["from_held"] == [["d4", "d5"], ["d5"], ["newest" * 4]]
     assert "closed" in got["after_close"]
-    assert got["stats"]["bytes_out"]["theta"] == 10 and got["stats"]["bytes_out"]["latest"] == 3 * 6
+    assert got["stats"]["bytes_out"]["theta"] == 10 and got["stats"]["bytes_out"]["latest"] == 3 * 6 + 2 * 3 + 24
