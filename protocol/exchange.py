@@ -96,12 +96,16 @@ class _NewestJobThread:
 MAX_CHAIN = 64  # deltas queued for one slow link at most (the bytes rule below usually stops it first)
 
 
+def _worth_chaining(frames: list[tuple[int, bytes]], full_bytes: int) -> bool:
+    """Whether these deltas beat the full snapshot: at most :data:`MAX_CHAIN`, fewer bytes."""
+    return len(frames) <= MAX_CHAIN and sum(len(f) for _, f in frames) < full_bytes
+
+
 def _chain(chain: tuple[tuple[int, bytes], ...], delta: tuple[int, bytes], full_bytes: int
            ) -> tuple[tuple[int, bytes], ...]:
-    """``chain`` with ``delta`` appended, its oldest frames dropped while it holds more than
-    :data:`MAX_CHAIN` frames or as many bytes as the full snapshot (then the full one is cheaper)."""
+    """``chain`` with ``delta`` appended, its oldest frames dropped until it is worth chaining."""
     frames = [*chain, delta]
-    while frames and (len(frames) > MAX_CHAIN or sum(len(f) for _, f in frames) >= full_bytes):
+    while frames and not _worth_chaining(frames, full_bytes):
         frames.pop(0)
     return tuple(frames)
 
@@ -132,8 +136,8 @@ class NeighbourSender(_NewestJobThread):
                 return
             if push is full or pending is None:
                 frames = [(round_index, push)]
-            elif len(pending[1]) < MAX_CHAIN and sum(len(f) for _, f in pending[1]) + len(push) < len(full):
-                frames = [*pending[1], (round_index, push)]
+            elif _worth_chaining(queued := [*pending[1], (round_index, push)], len(full)):
+                frames = queued
             else:
                 frames = [(round_index, full)]
             if pending is None or push is full:

@@ -102,6 +102,19 @@ class _Pair:
         self.ex[2].mailbox.advance(r)  # robot 2 went on to the next round
         return got.items[1]
 
+    def through_a_lost_delta(self, before_loss=lambda: None) -> tuple[ThetaSnapshot, int]:
+        """Rounds 1 and 2 delivered, round 3's push lost, round 4 published (its base is missing:
+        robot 2 pulls, saying it holds round 2): robot 2's round 4 and the bytes it took for it."""
+        for r in (1, 2):
+            self.publish(r)
+            self.received(r)
+        before_loss()
+        self.publish(3, lost=True)
+        before = self.latest_bytes_in()
+        self.publish(4)
+        got = self.received(4)
+        return got, self.latest_bytes_in() - before
+
     def latest_bytes_in(self) -> int:
         return self.nets[2].stats()["bytes_in"].get(1, 0)
 
@@ -129,18 +142,11 @@ def _same_as_published(pair: _Pair, got: ThetaSnapshot) -> bool:
 def test_a_lost_delta_is_made_good_by_the_deltas_since_the_receivers_base():
     pair = _Pair()
     try:
-        for r in (1, 2):
-            pair.publish(r)
-            pair.received(r)
-        pair.publish(3, lost=True)
-        before = pair.latest_bytes_in()
-        pair.publish(4)  # its base (round 3) is missing: robot 2 pulls, saying it holds round 2
-        got = pair.received(4)
+        got, pulled_and_pushed = pair.through_a_lost_delta()
         assert _same_as_published(pair, got)
         kinds = lambda: [k for k, _ in pair.events]  # noqa: E731
         assert _until(lambda: kinds().count("pulled") == 1) and kinds().count("base_missing") == 1, pair.events
         full = len(pair.ex[1].latest[1])
-        pulled_and_pushed = pair.latest_bytes_in() - before
         assert pulled_and_pushed < full / 3, (pulled_and_pushed, full)  # 3 deltas, no full snapshot
         assert pair.ex[2].bases.held_round(1) == 4 and not pair.rejected
         pair.publish(5)  # and the chain goes on from there
@@ -152,19 +158,15 @@ def test_a_lost_delta_is_made_good_by_the_deltas_since_the_receivers_base():
 def test_deltas_that_do_not_fit_the_receivers_base_fall_back_to_the_full_snapshot():
     pair = _Pair()
     try:
-        for r in (1, 2):
-            pair.publish(r)
-            pair.received(r)
-        # robot 2's copy of round 2 is not robot 1's (as after a forged plain frame of that round):
-        # the deltas since round 2 name a base digest it does not hold
-        other = {n: a + 1.0 for n, a in pair.ex[2].bases.resolve(pair.received(2), SPEC).tensors.items()}
-        pair.ex[2].bases.resolve(ThetaSnapshot(SWARM, 1, 2, 0, SPEC.signature(), other), SPEC)
-        pair.publish(3, lost=True)
-        before = pair.latest_bytes_in()
-        pair.publish(4)
-        got = pair.received(4)
+        def replace_the_base() -> None:
+            # robot 2's copy of round 2 is not robot 1's (as after a forged plain frame of that
+            # round): the deltas since round 2 name a base digest it does not hold
+            other = {n: a + 1.0 for n, a in pair.ex[2].bases.resolve(pair.received(2), SPEC).tensors.items()}
+            pair.ex[2].bases.resolve(ThetaSnapshot(SWARM, 1, 2, 0, SPEC.signature(), other), SPEC)
+
+        got, took = pair.through_a_lost_delta(before_loss=replace_the_base)
         assert _same_as_published(pair, got)
-        assert pair.latest_bytes_in() - before > len(pair.ex[1].latest[1])  # the full snapshot came
+        assert took > len(pair.ex[1].latest[1])  # the full snapshot came
         assert not pair.rejected, pair.rejected
     finally:
         pair.close()
