@@ -160,7 +160,7 @@ class RobotTrainer:
         consensus: ConsensusConfig | None = None,
     ) -> None:
         if cfg.field.unbounded is None:  # images that show their surroundings need all of space modelled
-            cfg = dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, unbounded=not views.has_alpha))
+            cfg = dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, unbounded=views.shows_surroundings))
         self.cfg = cfg
         self.device = torch.device(cfg.device)
         dev = self.device

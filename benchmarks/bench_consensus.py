@@ -3,7 +3,7 @@
 Same data and the same optimiser steps per model: the baseline trains ``rounds * steps`` steps on
 all training views (true poses); each robot trains ``rounds * steps`` steps on its own views,
 alone or in the swarm. Every model is scored on the same held-out views of the whole scene
-(every 8th view), rendered in the shared frame; "others" are the held-out views that lie outside
+(every 8th view, or --test-every), rendered in the shared frame; "others" are the held-out views that lie outside
 the robot's sector (only other robots saw that part of the scene).
 
     .venv/bin/python benchmarks/bench_consensus.py --data ../shared/data/nerf_synthetic/lego --width 100 \\
@@ -68,6 +68,8 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=None)
     ap.add_argument("--robots", type=int, default=2)
     ap.add_argument("--overlap", type=float, default=0.0)
+    ap.add_argument("--box-half-size", type=float, default=None, help="the scene box's half-size (default: the data's)")
+    ap.add_argument("--test-every", type=int, default=8, help="every k-th view is held out (a scenario's split.test_every)")
     ap.add_argument("--topology", default="full")
     ap.add_argument("--rounds", type=int, default=80)
     ap.add_argument("--steps", type=int, default=25, help="steps per round (80 x 25 beat 20 x 100 on lego)")
@@ -89,6 +91,11 @@ def main() -> None:
     modes = args.modes.split(",")
 
     views = load_views(args.data, width=args.width)
+    if args.box_half_size is not None:
+        from agent.data.capture import estimate_scene_box
+
+        centre, _, _ = estimate_scene_box(views)
+        views.meta["scene_box_world"] = {"center": centre.tolist(), "half_size": args.box_half_size}
     train = apply_overrides(TrainConfig(), args.set)
     consensus = ConsensusConfig()
     if args.rho is not None:
@@ -100,7 +107,8 @@ def main() -> None:
     total = swarm_cfg.total_steps
     results: dict = {"args": {k: str(v) for k, v in vars(args).items()}, "total_steps_per_model": total}
 
-    known = split_views(views, SplitConfig(robots=args.robots, overlap=args.overlap, frame="world", seed=args.seed))
+    known = split_views(views, SplitConfig(robots=args.robots, overlap=args.overlap, frame="world", seed=args.seed,
+                                             test_every=args.test_every))
     ev_known = EvalSet.from_split(known)
     ids = sorted(known.robots)
     topo = Topology.from_spec(args.topology, ids)
@@ -137,7 +145,7 @@ def main() -> None:
         extra = {}
         if mode == "unknown":
             split = split_views(views, SplitConfig(robots=args.robots, overlap=args.overlap, frame=args.frame,
-                                                   seed=args.seed, depth_prior=args.depth_prior,
+                                                   seed=args.seed, test_every=args.test_every, depth_prior=args.depth_prior,
                                                    random_max_scale=2.0 if args.pose_mode == "sim3" else 1.0))
             ev = EvalSet.from_split(split)
             tcfg = dataclasses.replace(

@@ -10,7 +10,7 @@ from agent.camera import fov_from_focal, optical_axis, unproject_depth
 from agent.data.views import DataError, Views
 
 __all__ = ["scene_center", "mean_up", "azimuths_deg", "estimate_scene_box", "box_from_bounds", "view_bounds",
-           "capture_warnings", "DEPTH_BOX_QUANTILE", "DEPTH_BOX_PADDING"]
+           "capture_warnings", "DEPTH_BOX_QUANTILE", "DEPTH_BOX_PADDING", "CAMERA_BOX_MARGIN"]
 
 
 def scene_center(c2w: Tensor) -> Tensor:
@@ -73,10 +73,29 @@ def azimuths_deg(c2w: Tensor, center: Tensor, up: Tensor) -> Tensor:
 
 DEPTH_BOX_QUANTILE = 0.01  # per axis, each side: sparse SfM depth has outliers far from the scene
 DEPTH_BOX_PADDING = 0.2  # of the quantile bounds' largest extent
+CAMERA_BOX_MARGIN = 0.1  # a capture that shows its surroundings: the box reaches this far past its cameras
 
 
 def estimate_scene_box(views: Views) -> tuple[Tensor, float, str]:
-    """The world box of the scene: (centre [3], half-size, where it came from).
+    """The world box of the scene: (centre [3], half-size, where the object's box came from).
+
+    A capture that shows its surroundings gets an unbounded field, linear only inside the box and
+    contracted outside it, where a grid cell spans ~|x|^2 times more space. Cameras left out there
+    see their near space through cells a metre deep, the room's wall and the camera's own
+    neighbourhood fall into the same few cells, and a few views on an arc are then fitted by
+    floaters in front of the lens (docs/results.md, the room). So, as nerfstudio and mip-NeRF 360
+    put the cameras inside the uncontracted region, the box grows about its centre to hold every
+    camera centre (plus ``CAMERA_BOX_MARGIN``).
+    """
+    centre, half, source = _object_box(views)
+    if views.shows_surroundings:
+        reach = (views.c2w[:, :3, 3].to(torch.float64) - centre.to(torch.float64)).abs().amax()
+        half = max(half, float(reach) * (1 + CAMERA_BOX_MARGIN))
+    return centre, half, source
+
+
+def _object_box(views: Views) -> tuple[Tensor, float, str]:
+    """The world box of the object or scene the cameras look at: (centre [3], half-size, source).
 
     In order of trust: ``meta['scene_box_world']`` (the procedural scene knows it exactly; a json
     may carry it); the bounds of the depth unprojected into the world (1st-99th percentile per
@@ -143,9 +162,13 @@ def capture_warnings(views: Views, box_source: str) -> list[str]:
     box_source: where :func:`estimate_scene_box` found the box.
     """
     out = []
-    if not views.has_alpha or bool((views.images[..., 3] >= 1.0).all()):
-        out.append("RGB images without alpha or masks: everything the cameras see must be modelled, i.e. an unbounded "
-                   "field, which the scene box cuts off; to train an object alone, give masks (masks/ beside images/)")
+    if views.shows_surroundings:
+        out.append("RGB images without alpha or masks: everything the cameras see must be modelled, by an unbounded "
+                   "field (scene contraction, its box grown to hold the cameras); to train an object alone, "
+                   "give masks (masks/ beside images/)")
+    elif bool((views.images[..., 3] >= 1.0).all()):
+        out.append("alpha opaque in every pixel: the field stays in the scene box, which cuts off what the cameras "
+                   "see around the object; give real masks, or images without alpha for an unbounded field")
     if box_source == "cameras":
         out.append("scene box estimated from the cameras only (the frustum width where the optical axes meet): "
                    "check that it holds the whole scene")

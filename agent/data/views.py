@@ -71,6 +71,13 @@ class Views:
     def has_alpha(self) -> bool:
         return int(self.images.shape[-1]) == 4
 
+    @property
+    def shows_surroundings(self) -> bool:
+        """RGB without alpha or masks: every pixel sees something, so the field must model all of
+        space (unbounded, contracted) and its box must hold the cameras. Decided by the format, not
+        the pixels, so that every robot of a swarm on one capture builds the same field."""
+        return not self.has_alpha
+
     def rgb(self, background: float | tuple[float, float, float] | Tensor = 1.0) -> Tensor:
         """Colour composited onto ``background`` (straight alpha): ``rgb * a + bg * (1 - a)``.
 

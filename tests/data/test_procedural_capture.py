@@ -9,9 +9,11 @@ import pytest
 import torch
 
 from agent.camera import unproject_depth
+from agent.data.capture import capture_warnings, estimate_scene_box
 from agent.data.loaders import load_views, parse_procedural_spec
 from agent.data.procedural import ProceduralConfig, procedural_views, render_procedural, scene_sdf, surface_colour
 from agent.data.procedural.room import CEILING_Z, FLOOR_Z, ROOM_HALF_SIZE, room_sdf
+from agent.data.procedural.scene import SCENE_BOX_WORLD
 from agent.data.views import DataError
 from agent.geometry import look_at
 
@@ -37,6 +39,20 @@ def test_room_views_are_rgb_and_every_pixel_sees_a_surface(room):
         on_wall = on_room & ((pts[:, :2].abs() - ROOM_HALF_SIZE).abs() < 1e-4).any(-1)
         assert int(on_wall.sum()) > 20, f"view {i}: the walls are in the picture"
         assert bool((pts[on_room].abs().amax(-1) > 1.0).all()), "the room lies outside the scene box"
+
+
+def test_the_box_of_a_capture_that_shows_its_room_holds_its_cameras(room):
+    """Cameras left in the contracted shell would see their near space through cells ~|x|^2 too
+    deep; with alpha, the object's box alone."""
+    centre, half, source = estimate_scene_box(room)
+    reach = float((room.c2w[:, :3, 3].double() - centre).abs().amax())
+    assert source == "dataset" and reach * 1.05 < half < ROOM_HALF_SIZE
+    obj = procedural_views(ProceduralConfig(num_views=8, width=40, height=32, seed=2, supersample=1))
+    assert obj.has_alpha and estimate_scene_box(obj)[1] == pytest.approx(SCENE_BOX_WORLD["half_size"])
+    assert not capture_warnings(obj, "dataset")
+    obj.images[..., 3] = 1.0  # an alpha channel that masks nothing: bounded, and said so
+    assert any("alpha opaque in every pixel" in w for w in capture_warnings(obj, "dataset"))
+    assert "unbounded field" in capture_warnings(room, "dataset")[0]
 
 
 def test_room_depth_lands_on_a_surface_with_the_rendered_colour(room):
