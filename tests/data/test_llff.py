@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
 
 from agent.camera import project_points
-from agent.data.capture import estimate_scene_box
+from agent.data.capture import CAMERA_BOX_MARGIN, estimate_scene_box
 from agent.data.loaders import load_views
 from agent.data.views import DataError
 
@@ -119,11 +121,16 @@ def test_masks_beside_the_images_become_alpha(tmp_path):
 
 def test_the_box_comes_from_the_bounds(tmp_path):
     write_llff(tmp_path, ring(n=8), np.tile([3.0, 5.0], (8, 1)), folders=(("images_4", 4),))
-    v = load_views(tmp_path)
+    rgb = load_views(tmp_path)
+    v = dataclasses.replace(rgb, images=torch.cat([rgb.images, torch.zeros_like(rgb.images[..., :1])], -1))  # masked
     centre, half, source = estimate_scene_box(v)
     assert source == "bounds" and float(centre.norm()) < 1e-6 and half == pytest.approx(1.0)
     sub = v.subset([1, 4, 6])  # bounds are kept by name
     assert estimate_scene_box(sub)[2] == "bounds"
+    # without masks the field is unbounded, and its box also holds the cameras (radius 4)
+    centre, half, source = estimate_scene_box(rgb)
+    reach = float(rgb.c2w[:, :3, 3].abs().amax())
+    assert source == "bounds" and half == pytest.approx(reach * (1 + CAMERA_BOX_MARGIN)) and reach > 3
 
 
 @pytest.mark.parametrize("edit, message", [
