@@ -68,7 +68,8 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=None)
     ap.add_argument("--robots", type=int, default=2)
     ap.add_argument("--overlap", type=float, default=0.0)
-    ap.add_argument("--box-half-size", type=float, default=None, help="the scene box's half-size (default: the data's)")
+    ap.add_argument("--box-half-size", type=float, default=None,
+                    help="the object box's half-size (default: the data's; without alpha it still grows to the cameras)")
     ap.add_argument("--test-every", type=int, default=8, help="every k-th view is held out (a scenario's split.test_every)")
     ap.add_argument("--topology", default="full")
     ap.add_argument("--rounds", type=int, default=80)

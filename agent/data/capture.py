@@ -81,7 +81,7 @@ def estimate_scene_box(views: Views) -> tuple[Tensor, float, str]:
 
     A capture that shows its surroundings gets an unbounded field, linear only inside the box and
     contracted outside it, where a grid cell spans ~|x|^2 times more space. Cameras left out there
-    see their near space through cells a metre deep, the room's wall and the camera's own
+    see their near space through cells a scene unit deep, the room's wall and the camera's own
     neighbourhood fall into the same few cells, and a few views on an arc are then fitted by
     floaters in front of the lens (docs/results.md, the room). So, as nerfstudio and mip-NeRF 360
     put the cameras inside the uncontracted region, the box grows about its centre to hold every
