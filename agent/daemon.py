@@ -369,7 +369,7 @@ class Daemon:
             while self.round < self.training.rounds:
                 self._check_stop()
                 completed += self._one_round(heard_in=heard, stats_before=stats0)
-                stats0 = self._traffic()
+                stats0 = self._traffic_at_record  # contiguous windows: no byte falls between two rounds
                 heard = self._last_heard
             self.folder.write_done(self.robot_id, self.round, self.report.rejected_counts())
             self.report.say(f"done: {self.round} rounds")
@@ -454,10 +454,10 @@ class Daemon:
         """The network's counters and, per neighbour, the snapshot bytes pushed so far."""
         return {**self.net.stats(), "links": self.exchange.bytes_sent()}
 
-    def _link_bytes(self, stats_before: dict) -> tuple[dict[int, int], float | None]:
+    def _link_bytes(self, now: dict, stats_before: dict) -> tuple[dict[int, int], float | None]:
         """Per neighbour the snapshot bytes pushed this round, and their mean over the raw float32 size."""
         before = stats_before.get("links", {})
-        links = {j: b - before.get(j, 0) for j, b in self.exchange.bytes_sent().items()}
+        links = {j: b - before.get(j, 0) for j, b in now["links"].items()}
         links = {j: b for j, b in links.items() if b}
         raw = self.spec.float32_bytes
         return links, (sum(links.values()) / len(links) / raw if links and raw else None)
@@ -477,10 +477,12 @@ class Daemon:
     def _round_record(self, stats, heard: list[int], stats_before: dict, t_compute: float,
                       waited: float) -> RoundRecord:
         psnr = self._own_psnr()
-        net = self.net.stats()
+        # Counted from the end of the last round's window: a neighbour already a round ahead may
+        # be counted in the round before the one its snapshot is for, but no byte goes uncounted.
+        net = self._traffic_at_record = self._traffic()
         bytes_in = {int(j): net["bytes_in"].get(j, 0) - stats_before["bytes_in"].get(j, 0) for j in net["bytes_in"]}
         pose, s = self._pose(), self.board.own()
-        links, ratio = self._link_bytes(stats_before)
+        links, ratio = self._link_bytes(net, stats_before)
         return RoundRecord(
             robot=self.robot_id, round=self.round, time=time.time(), monotonic=time.monotonic(), loss=stats.loss,
             rgb_loss=stats.rgb_loss, depth_loss=stats.depth_loss, batch_psnr=stats.batch_psnr, psnr=psnr,

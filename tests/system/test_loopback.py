@@ -81,7 +81,11 @@ def test_a_line_of_three_in_one_process_matches_the_simulation(tmp_path):
         records = read_telemetry(RunFolder(swarm.run_dir(i)).telemetry)
         assert [r.round for r in records] == [1, 2, 3, 4, 5]
         line = {1: [2], 2: [1, 3], 3: [2]}[i]
-        assert all(r.heard == line and r.bytes_in for r in records), records
+        assert all(r.heard == line for r in records), records
+        # A neighbour a round ahead may land in the round before (the windows are by time), but
+        # every neighbour's bytes are counted and only neighbours send.
+        received = {j: sum(r.bytes_in.get(j, 0) for r in records) for j in line}
+        assert all(received.values()) and all(set(r.bytes_in) <= set(line) for r in records), records
 
 
 def test_a_robot_that_hears_no_neighbour_for_three_rounds_says_so_once(tmp_path):
