@@ -46,7 +46,7 @@ class RoundRecord:
     live_neighbours: list[int] = field(default_factory=list)
     reachable: list[int] = field(default_factory=list)  # live neighbours whose tokens it saw itself
     heard: list[int] = field(default_factory=list)  # neighbours whose snapshot this round used
-    bytes_in: dict[int, int] = field(default_factory=dict)  # per sender, this round
+    bytes_in: dict[int, int] = field(default_factory=dict)  # per sender, received since the last record (by time)
     bytes_out: int = 0
     bytes_out_links: dict[int, int] = field(default_factory=dict)  # per neighbour: snapshot bytes pushed this round
     wire_ratio: float | None = None  # mean of bytes_out_links over the raw float32 snapshot: 1.0 = uncompressed
