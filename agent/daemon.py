@@ -205,6 +205,7 @@ class Daemon:
                                    self._model_changed)
         self._model_changed()
         self._last_heard: dict[int, ThetaSnapshot] = {}
+        self._traffic_at_record: dict = {}  # the counters at the last round's record: the next window starts there
         self._rgb_losses: list[float] = []
         self._warned_flat = False
         self._isolated_rounds = 0  # consecutive rounds in consensus without hearing any neighbour
@@ -369,7 +370,7 @@ class Daemon:
             while self.round < self.training.rounds:
                 self._check_stop()
                 completed += self._one_round(heard_in=heard, stats_before=stats0)
-                stats0 = self._traffic_at_record  # contiguous windows: no byte falls between two rounds
+                stats0 = self._traffic_at_record
                 heard = self._last_heard
             self.folder.write_done(self.robot_id, self.round, self.report.rejected_counts())
             self.report.say(f"done: {self.round} rounds")
