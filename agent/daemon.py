@@ -37,8 +37,9 @@ from agent.align import AlignConfig
 from agent.bootstrap import Bootstrap, BootstrapTiming
 from agent.checkpoint import CheckpointError, RobotCheckpoint, RunFolder, load_into
 from agent.config_io import check
+from agent.data.capture import estimate_scene_box, field_box_mismatch
 from agent.data.views import Views
-from agent.geometry import pose_summary
+from agent.geometry import box_from_center, pose_summary
 from agent.swarm import RobotSetup, SwarmTrainingConfig, build_robot
 from agent.telemetry import EventLog, JsonLines, PlateauRule, Reporter, RoundRecord, StatusBoard
 from protocol import codec
@@ -177,11 +178,10 @@ class Daemon:
         self._telemetry = JsonLines(self.folder.telemetry)
         box_known = box_from_shared is not None
         if not box_known:  # a provisional box from our own views (the right one if we are the reference)
-            from agent.data.split import estimate_scene_box
-            from agent.geometry import box_from_center
-
-            center, half_size, _ = estimate_scene_box(views)
+            center, half_size, _ = estimate_scene_box(views, training.train.field.unbounded)
             box_from_shared = box_from_center(center, half_size)
+        elif (mismatch := field_box_mismatch(views, training.train.field.unbounded)) is not None:
+            self.report.warn(mismatch)  # the split sized the box for the field the images call for
         self.setup = build_robot(robot_id, views, box_from_shared, training, initial_pose, is_reference=False)
         self.trainer = self.setup.trainer
         self.mailbox: Mailbox[ThetaSnapshot] = Mailbox(max_ahead=cfg.max_ahead, last_round=training.rounds)

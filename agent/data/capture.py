@@ -9,8 +9,8 @@ from torch import Tensor
 from agent.camera import fov_from_focal, optical_axis, unproject_depth
 from agent.data.views import DataError, Views
 
-__all__ = ["scene_center", "mean_up", "azimuths_deg", "estimate_scene_box", "box_from_bounds", "view_bounds",
-           "capture_warnings", "DEPTH_BOX_QUANTILE", "DEPTH_BOX_PADDING", "CAMERA_BOX_MARGIN"]
+__all__ = ["scene_center", "mean_up", "azimuths_deg", "estimate_scene_box", "field_box_mismatch", "box_from_bounds",
+           "view_bounds", "capture_warnings", "DEPTH_BOX_QUANTILE", "DEPTH_BOX_PADDING", "CAMERA_BOX_MARGIN"]
 
 
 def scene_center(c2w: Tensor) -> Tensor:
@@ -76,8 +76,11 @@ DEPTH_BOX_PADDING = 0.2  # of the quantile bounds' largest extent
 CAMERA_BOX_MARGIN = 0.1  # a capture that shows its surroundings: the box reaches this far past its cameras
 
 
-def estimate_scene_box(views: Views) -> tuple[Tensor, float, str]:
+def estimate_scene_box(views: Views, unbounded: bool | None = None) -> tuple[Tensor, float, str]:
     """The world box of the scene: (centre [3], half-size, where the object's box came from).
+
+    unbounded: the field the box is for (``field.unbounded``); None: what the images call for
+    (``views.shows_surroundings``), as the field itself decides when the setting is unset.
 
     A capture that shows its surroundings gets an unbounded field, linear only inside the box and
     contracted outside it, where a grid cell spans ~|x|^2 times more space. Cameras left out there
@@ -88,10 +91,25 @@ def estimate_scene_box(views: Views) -> tuple[Tensor, float, str]:
     camera centre (plus ``CAMERA_BOX_MARGIN``).
     """
     centre, half, source = _object_box(views)
-    if views.shows_surroundings:
+    if views.shows_surroundings if unbounded is None else unbounded:
         reach = (views.c2w[:, :3, 3].to(torch.float64) - centre.to(torch.float64)).abs().amax()
         half = max(half, float(reach) * (1 + CAMERA_BOX_MARGIN))
     return centre, half, source
+
+
+def field_box_mismatch(views: Views, unbounded: bool | None) -> str | None:
+    """One line when ``field.unbounded`` is set against what the images show (None when it is unset
+    or agrees). A split sizes the swarm's box for the field the images call for, before any
+    training setting is known, so a field set the other way trains in a box meant for the other."""
+    if unbounded is None or unbounded == views.shows_surroundings:
+        return None
+    if unbounded:
+        return ("training.train.field.unbounded = true, but these images have alpha or masks: the split's box is the "
+                "object's, so the cameras sit in the contracted shell and see their near space through coarse cells "
+                "(expect floaters in front of the lens); unset it, or give images without alpha")
+    return ("training.train.field.unbounded = false, but these RGB images without alpha or masks show their "
+            "surroundings: the field ends at the box (grown to hold the cameras) and must fit everything seen beyond "
+            "it inside; unset it (an unbounded field), or give masks (masks/ beside images/)")
 
 
 def _object_box(views: Views) -> tuple[Tensor, float, str]:

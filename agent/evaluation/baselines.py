@@ -55,7 +55,7 @@ def train_baseline(
     train = [i for i in range(len(views)) if i not in set(test)]
     if not train:
         raise DataError(f"no training views left: {len(views)} views, every {test_every}th a test view")
-    center, half, source = estimate_scene_box(views)
+    center, half, source = estimate_scene_box(views, cfg.field.unbounded)  # for the field it trains
     cfg = replace(cfg, pose=replace(cfg.pose, mode="fixed"))
     trainer = RobotTrainer(views.subset(train), cfg, box_from_center(center, half))
     times: list[float] = []

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from agent.camera import unproject_depth
-from agent.data.capture import capture_warnings, estimate_scene_box
+from agent.data.capture import capture_warnings, estimate_scene_box, field_box_mismatch
 from agent.data.loaders import load_views, parse_procedural_spec
 from agent.data.procedural import ProceduralConfig, procedural_views, render_procedural, scene_sdf, surface_colour
 from agent.data.procedural.room import CEILING_Z, FLOOR_Z, ROOM_HALF_SIZE, room_sdf
@@ -53,6 +53,21 @@ def test_the_box_of_a_capture_that_shows_its_room_holds_its_cameras(room):
     obj.images[..., 3] = 1.0  # an alpha channel that masks nothing: bounded, and said so
     assert any("alpha opaque in every pixel" in w for w in capture_warnings(obj, "dataset"))
     assert "unbounded field" in capture_warnings(room, "dataset")[0]
+
+
+def test_a_field_set_against_the_images_gets_its_own_box_and_a_warning(room):
+    """field.unbounded set by hand: a box sized for that field where the config is known (the
+    baseline); one line where the split sized it for the other (the daemon)."""
+    obj = procedural_views(ProceduralConfig(num_views=8, width=40, height=32, seed=2, supersample=1))
+    grown, obj_half = estimate_scene_box(room)[1], estimate_scene_box(obj)[1]
+    assert estimate_scene_box(room, unbounded=False)[1] == pytest.approx(SCENE_BOX_WORLD["half_size"])
+    assert SCENE_BOX_WORLD["half_size"] < grown
+    assert estimate_scene_box(obj, unbounded=True)[1] > 3 * obj_half  # the object's cameras held
+    assert estimate_scene_box(room, unbounded=True)[1] == grown
+    assert field_box_mismatch(room, None) is None and field_box_mismatch(room, True) is None
+    assert field_box_mismatch(obj, None) is None and field_box_mismatch(obj, False) is None
+    assert "unbounded = false" in field_box_mismatch(room, False) and "masks" in field_box_mismatch(room, False)
+    assert "unbounded = true" in field_box_mismatch(obj, True) and "floaters" in field_box_mismatch(obj, True)
 
 
 def test_room_depth_lands_on_a_surface_with_the_rendered_colour(room):

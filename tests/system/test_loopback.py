@@ -109,6 +109,21 @@ def test_a_robot_that_hears_no_neighbour_for_three_rounds_says_so_once(tmp_path)
     assert all("delta+quinary" in w and "MB at float32" in w for w in said), said
 
 
+def test_a_field_set_against_what_the_images_show_is_said_at_start(tmp_path):
+    """The split sized the box for a bounded field (these images have alpha); a robot told to train
+    an unbounded one in it says so before its first round, in one line."""
+    torch.set_num_threads(1)
+    swarm = make_swarm(tmp_path, robots=2, topology="full",
+                       training={"rounds": 1, "steps_per_round": 1, "train": {"field": {"unbounded": True}}})
+    warnings: list[str] = []
+    cfg = from_dict(DaemonConfig, {"startup_wait_s": 2.0, "round_timeout_s": 5.0, "initial_pose": "identity",
+                                   "linger_s": 0.2, "threads": 1})
+    run_in_process(swarm, None, cfg, warn=warnings.append)
+    said = [w for w in warnings if "unbounded = true" in w]
+    assert sorted(w.split("]")[0] for w in said) == ["[robot 1", "[robot 2"], warnings
+    assert all("\n" not in w and "floaters" in w for w in said)
+
+
 def test_a_loss_that_stays_flat_and_high_is_said_once(tmp_path):
     """A field that learns nothing (learning rate ~0 here; a bounded box around a room in real life)
     used to go flat silently; the daemon warns once, with an event."""
