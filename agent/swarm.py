@@ -149,6 +149,9 @@ class Simulation:
         # With a lossy wire, C-ADMM runs on what both ends of an edge hold: each robot's own
         # theta as its neighbours received it (the public copy), so y_ij = -y_ji stays exact.
         self.on_public = True
+        # the anchors (theta_i^k + theta_j^k) / 2 from the robot's own exact theta_i^k rather than
+        # its public copy (the duals stay on the public copies either way)
+        self.anchor_on_exact = False
         self.public: dict[int, dict[str, Tensor]] = {}
         self.neighbours = {i: sorted(neighbours[i]) for i in robots}
         self.reference_id = min(robots) if reference_id is None else reference_id
@@ -169,7 +172,8 @@ class Simulation:
         k = self.round
         stats = {}
         for i, robot in self.robots.items():
-            robot.trainer.begin_round(k, {j: self.thetas[j] for j in self.neighbours[i]}, own=self.public.get(i))
+            anchor_own = None if self.anchor_on_exact else self.public.get(i)
+            robot.trainer.begin_round(k, {j: self.thetas[j] for j in self.neighbours[i]}, own=anchor_own)
             stats[i] = robot.trainer.train(self.cfg.steps_per_round)
         own = new = {i: r.trainer.theta() for i, r in self.robots.items()}
         if self.wire is not None:

@@ -33,6 +33,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
+from agent.consensus import ConsensusConfig  # noqa: E402
 from agent.data.loaders import load_views  # noqa: E402
 from agent.data.split import SplitConfig, split_views  # noqa: E402
 from agent.evaluation import EvalSet, evaluate_robot  # noqa: E402
@@ -44,20 +45,23 @@ from protocol.membership import Topology  # noqa: E402
 from bench_consensus import coarse_initial_poses  # noqa: E402  (benchmarks/, on the path above)
 
 
-def mode_config(mode: str, topk: float) -> tuple[CompressionConfig, bool]:
+def mode_config(mode: str, topk: float) -> tuple[CompressionConfig, bool, bool]:
     """``MODE[@key=value,...]``: a mode with CompressionConfig fields set, e.g.
     ``delta+ternary@ternary_threshold=1.0``; ``@exact`` runs C-ADMM on each robot's exact theta
-    rather than on the copy its neighbours hold (the public copy, as the daemons do)."""
+    rather than on the copy its neighbours hold (the public copy, as the daemons do);
+    ``@anchor_exact`` keeps the duals on the public copy but fixes the round's anchors from the
+    robot's exact theta_i^k."""
     name, _, rest = mode.partition("@")
     fields: dict = {"compression": name, "topk_fraction": topk}
-    on_public = True
+    on_public, anchor_on_exact = True, False
     for item in filter(None, rest.split(",")):
-        if item == "exact":
-            on_public = False
+        if item in ("exact", "anchor_exact"):
+            on_public = on_public and item != "exact"
+            anchor_on_exact = anchor_on_exact or item == "anchor_exact"
             continue
         key, _, value = item.partition("=")
         fields[key] = type(getattr(CompressionConfig(), key))(value)
-    return CompressionConfig(**fields), on_public
+    return CompressionConfig(**fields), on_public, anchor_on_exact
 
 
 def run_mode(mode: str, split, neighbours, cfg: SwarmTrainingConfig, topk: float, ev: EvalSet,
@@ -66,8 +70,8 @@ def run_mode(mode: str, split, neighbours, cfg: SwarmTrainingConfig, topk: float
     t0 = time.time()
     robots = {i: r.views for i, r in split.robots.items()}
     sim = Simulation(robots, neighbours, split.box_from_shared, cfg, initial_poses=initial)
-    compression, on_public = mode_config(mode, topk)
-    sim.on_public = on_public
+    compression, on_public, anchor_on_exact = mode_config(mode, topk)
+    sim.on_public, sim.anchor_on_exact = on_public, anchor_on_exact
     sim.wire = ProtocolWire(compression, next(iter(sim.thetas.values())), sorted(robots))
     sim.run()
     raw = sim.wire.spec.float32_bytes
@@ -106,15 +110,19 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], help="TrainConfig override, e.g. rays_per_step=512")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--rho", type=float, default=None, help="rho0 (default: ConsensusConfig's)")
+    ap.add_argument("--test-every", type=int, default=8, help="every k-th view is held out (a scenario's split.test_every)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
     views = load_views(args.data, width=args.width)
     train = apply_overrides(TrainConfig(), [f"field.grid.log2_hashmap_size={args.field_log2}", *args.set])
+    consensus = ConsensusConfig() if args.rho is None else ConsensusConfig(rho0=args.rho)
     cfg = SwarmTrainingConfig(rounds=args.rounds, steps_per_round=args.steps, seed=args.seed, own_holdout_every=0,
-                              train=train)
-    split = split_views(views, SplitConfig(robots=args.robots, overlap=args.overlap, frame=args.frame, seed=args.seed))
+                              consensus=consensus, train=train)
+    split = split_views(views, SplitConfig(robots=args.robots, overlap=args.overlap, frame=args.frame, seed=args.seed,
+                                           test_every=args.test_every))
     ev = EvalSet.from_split(split)
     ids = sorted(split.robots)
     topo = Topology.from_spec(args.topology, ids)
