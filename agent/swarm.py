@@ -149,8 +149,8 @@ class Simulation:
         # With a lossy wire, C-ADMM runs on what both ends of an edge hold: each robot's own
         # theta as its neighbours received it (the public copy), so y_ij = -y_ji stays exact.
         self.on_public = True
-        # the anchors (theta_i^k + theta_j^k) / 2 from the robot's own exact theta_i^k rather than
-        # its public copy (the duals stay on the public copies either way)
+        # Benchmarks only: the anchors (theta_i^k + theta_j^k) / 2 from the robot's exact theta_i^k
+        # rather than its public copy, duals still on the public copies (no gain on lego: results.md)
         self.anchor_on_exact = False
         self.public: dict[int, dict[str, Tensor]] = {}
         self.neighbours = {i: sorted(neighbours[i]) for i in robots}
