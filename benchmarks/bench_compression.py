@@ -53,15 +53,12 @@ def mode_config(mode: str, topk: float) -> tuple[CompressionConfig, bool, bool]:
     robot's exact theta_i^k."""
     name, _, rest = mode.partition("@")
     fields: dict = {"compression": name, "topk_fraction": topk}
-    on_public, anchor_on_exact = True, False
-    for item in filter(None, rest.split(",")):
-        if item in ("exact", "anchor_exact"):
-            on_public = on_public and item != "exact"
-            anchor_on_exact = anchor_on_exact or item == "anchor_exact"
-            continue
-        key, _, value = item.partition("=")
-        fields[key] = type(getattr(CompressionConfig(), key))(value)
-    return CompressionConfig(**fields), on_public, anchor_on_exact
+    items = [item for item in rest.split(",") if item]
+    for item in items:
+        if item not in ("exact", "anchor_exact"):
+            key, _, value = item.partition("=")
+            fields[key] = type(getattr(CompressionConfig(), key))(value)
+    return CompressionConfig(**fields), "exact" not in items, "anchor_exact" in items
 
 
 def run_mode(mode: str, split, neighbours, cfg: SwarmTrainingConfig, topk: float, ev: EvalSet,
@@ -111,7 +108,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rho", type=float, default=None, help="rho0 (default: ConsensusConfig's)")
-    ap.add_argument("--test-every", type=int, default=8, help="every k-th view is held out (a scenario's split.test_every)")
+    ap.add_argument("--test-every", type=int, default=SplitConfig().test_every, help="every k-th view is held out (a scenario's split.test_every)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
