@@ -18,6 +18,13 @@ every round at float32 makes the network, not the CPU, set the pace on a slow li
                   round, so no entry lags its neighbours' copy by more than a step; zstd then
                   packs the codes near their entropy (1.2-1.7 bits a value). Tensors up to
                   ``whole_below`` entries go as int8 deltas.
+- ``delta+uniform`` one step per tensor (``level_step`` times its mean |delta|), codes not
+                  clipped: -2..+2 packed as in quinary, where +-2 stands for "2 or more", whose
+                  true codes (int8) follow as escapes in entry order. A step per chunk spends
+                  the same bits on a chunk that barely moved as on the hash level that moves
+                  most, and clips the latter; one step per tensor spends them where the change
+                  is, the least squared error for the bytes (on lego, a third less residual than
+                  quinary at 1/21 of float32; docs/results.md).
 
 **Error feedback, CHOCO-SGD style.** The sender keeps a public copy ``x_hat``: exactly what its
 receivers reconstruct. Each delta is ``theta - x_hat``, and ``x_hat`` advances by what was sent,
@@ -49,10 +56,13 @@ import numpy as np
 
 from protocol.messages import MAX_ROUND, CodedTheta, ModelSpec, Rejected, ThetaSnapshot, is_int
 
-MODES = ("none", "fp16", "int8", "delta+int8", "delta+topk", "delta+ternary", "delta+quinary")
+MODES = ("none", "fp16", "int8", "delta+int8", "delta+topk", "delta+ternary", "delta+quinary", "delta+uniform")
 CODED_MODES = MODES[2:]  # frames with a coded array table
 DELTA_MODES = MODES[3:]  # frames that need a base
 LEVEL_MODES = {"delta+ternary": 1, "delta+quinary": 2}  # the largest |code|, in steps
+UNIFORM = "delta+uniform"
+_ESCAPE = 2  # a uniform code of at least this size is packed as +-2, its value an escape
+_MAX_CODE = 127
 _PACKING = {1: (3, 5), 2: (5, 3)}  # largest |code| -> (base, codes per byte)
 META_FIELDS = {"code", "chunk", "base_round", "base", "digest"}
 MAX_CHUNK = 1 << 20
@@ -69,14 +79,16 @@ class CompressionConfig:
     5-ring never heard each other (Zenoh closes a link whose put stays blocked), and each one
     trained alone (docs/results.md, "Capped links")."""
 
-    compression: Literal["none", "fp16", "int8", "delta+int8", "delta+topk", "delta+ternary", "delta+quinary"] = "delta+quinary"
+    compression: Literal["none", "fp16", "int8", "delta+int8", "delta+topk", "delta+ternary", "delta+quinary",
+                         "delta+uniform"] = "delta+quinary"
     # delta+topk: the share of each tensor's entries sent per round (the rest waits, error feedback)
     topk_fraction: float = 0.05
-    # delta+topk, delta+ternary, delta+quinary: tensors of at most this many entries go whole, as int8 deltas.
+    # delta+topk and the level codes: tensors of at most this many entries go whole, as int8 deltas.
     # These are the decoders' weights: every ray passes through them, they are ~0.3% of lego's
     # snapshot, and sending them whole gained 0.65 dB there with top-k at 5% (docs/results.md). 0 = none.
     whole_below: int = 16384
-    # delta+ternary/quinary: the rounding step, in units of each chunk's mean |delta|. On
+    # delta+ternary/quinary: the rounding step, in units of each chunk's mean |delta| (delta+uniform:
+    # of each tensor's). On
     # Laplace-like deltas 2 is near the least squared error per bit (entries within one mean of
     # zero send nothing; what is not sent stays in the residual).
     level_step: float = 2.0
@@ -138,6 +150,46 @@ def level_quantise(values: np.ndarray, chunk: int, levels: int, step: float) -> 
         scales[:, a - 1] = (magnitude * at).sum(axis=1) / np.maximum(at.sum(axis=1), 1)
     codes = (np.sign(blocks) * level).astype(np.int8).reshape(-1)[: values.size]
     return codes, scales.reshape(-1)
+
+
+def uniform_quantise(values: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """float32 [n] -> (codes int8 [n] in [-127, 127], float32 [width, mean |value| at code +-1]).
+
+    The width is ``step`` x the mean |value|, or the largest |value| / 127 if that is more, so no
+    entry is clipped (a residual left in a few entries goes out at once). Code +-1 decodes to the
+    mean |value| of its entries, not to the width: entries near the mean would otherwise swap
+    sign round after round instead of draining; code a >= 2 decodes to a x width."""
+    magnitude = np.abs(values)
+    width = np.float32(max(step * magnitude.mean(), magnitude.max() / _MAX_CODE)) if values.size else np.float32(0)
+    if not width > 0:
+        return np.zeros(values.size, np.int8), np.zeros(2, np.float32)
+    codes = np.clip(np.rint(values / width), -_MAX_CODE, _MAX_CODE).astype(np.int8)
+    ones = np.abs(codes) == 1
+    return codes, np.array([width, magnitude[ones].mean() if ones.any() else 0], np.float32)
+
+
+def uniform_dequantise(codes: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """The float32 values both ends compute from (codes, [width, mean at +-1])."""
+    magnitude = np.abs(codes.astype(np.float32)) * scales[0]
+    return (np.sign(codes) * np.where(np.abs(codes) == 1, scales[1], magnitude)).astype(np.float32)
+
+
+def split_escapes(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """int8 codes [n] -> (codes clipped to +-2 [n], the codes at +-2 or beyond, in order [e])."""
+    return np.clip(codes, -_ESCAPE, _ESCAPE), codes[np.abs(codes) >= _ESCAPE]
+
+
+def join_escapes(clipped: np.ndarray, escapes: np.ndarray, name: str) -> np.ndarray:
+    """The inverse of :func:`split_escapes`; escapes that do not fit the codes are refused."""
+    at = np.flatnonzero(np.abs(clipped) == _ESCAPE)
+    if at.size != escapes.size:
+        raise Rejected("bad_shape", f"{name[:64]!r}: {escapes.size} escapes for {at.size} codes of +-2")
+    if escapes.size and not ((np.abs(escapes.astype(np.int16)) >= _ESCAPE).all()
+                             and (np.sign(escapes) == np.sign(clipped[at])).all()):
+        raise Rejected("bad_field", f"{name[:64]!r}: an escape smaller than 2 steps or of the wrong sign")
+    out = clipped.copy()
+    out[at] = escapes
+    return out
 
 
 def level_dequantise(codes: np.ndarray, scales: np.ndarray, chunk: int, levels: int) -> np.ndarray:
@@ -213,7 +265,7 @@ def _indices(planes: np.ndarray, size: int, name: str) -> np.ndarray:
 # --------------------------------------------------------------------------- encoding
 
 #: How one tensor is coded: ("q", n) int8 values, ("topk", k) k of them with their gaps, ("codes", n)
-#: few-level codes (their number from the mode).
+#: few-level codes (their number from the mode), ("uniform", e) uniform codes with e escapes.
 Form = tuple[str, int]
 
 
@@ -222,6 +274,11 @@ def _code_tensor(mode: str, name: str, delta: np.ndarray, cfg: CompressionConfig
     """One tensor's arrays and the float32 delta [n] they decode to."""
     flat = delta.reshape(-1)
     levels = LEVEL_MODES.get(mode)
+    if mode == UNIFORM and flat.size > cfg.whole_below:
+        codes, scales = uniform_quantise(flat, cfg.level_step)
+        clipped, escapes = split_escapes(codes)
+        return [(f"{name}/codes", pack_codes(clipped, _ESCAPE), "uint8"), (f"{name}/escapes", escapes, "int8"),
+                (f"{name}/scale", scales, "float32")], uniform_dequantise(codes, scales)
     if levels and flat.size > cfg.whole_below:
         codes, scale = level_quantise(flat, cfg.chunk, levels, cfg.level_step)
         return [(f"{name}/codes", pack_codes(codes, levels), "uint8"), (f"{name}/scale", scale, "float32")], \
@@ -277,6 +334,9 @@ def coded_arrays(coded: CodedTheta, spec: ModelSpec) -> list[tuple[str, np.ndarr
 def _sent_forms(coded: CodedTheta, spec: ModelSpec) -> list[Form]:
     if coded.mode == "delta+topk":
         return [("topk", int(np.shape(coded.arrays[f"{p.name}/q"])[0])) for p in spec.params]
+    if coded.mode == UNIFORM:
+        return [("uniform", int(np.shape(coded.arrays[f"{p.name}/escapes"])[0])) if f"{p.name}/escapes" in coded.arrays
+                else ("q", p.size) for p in spec.params]
     return [("codes" if f"{p.name}/codes" in coded.arrays else "q", p.size) for p in spec.params]
 
 
@@ -294,7 +354,10 @@ def coded_layout(mode: str, chunk: int, spec: ModelSpec, forms: list[Form]) -> l
     for p, (form, k) in zip(spec.params, forms):
         if form == "topk":
             table.append((f"{p.name}/gaps", "uint8", (4, k)))
-        if form == "codes":
+        if form == "uniform":
+            table += [(f"{p.name}/codes", "uint8", (-(-p.size // _PACKING[_ESCAPE][1]),)),
+                      (f"{p.name}/escapes", "int8", (k,)), (f"{p.name}/scale", "float32", (2,))]
+        elif form == "codes":
             levels = LEVEL_MODES[mode]
             table += [(f"{p.name}/codes", "uint8", (-(-k // _PACKING[levels][1]),)),
                       (f"{p.name}/scale", "float32", (-(-k // chunk) * levels,))]
@@ -349,6 +412,12 @@ def _received_forms(entries: list[tuple[str, str, tuple[int, ...]]], coded: Code
                 raise Rejected("bad_shape", f"tensor {p.name!r}: {list(shape)[:4]} coded values for {p.size} entries")
             forms.append(("topk", shape[0]))
             pos += 3
+        elif coded.mode == UNIFORM and first[0] == f"{p.name}/codes":
+            shape = entries[pos + 1][2] if pos + 1 < len(entries) else ()
+            if len(shape) != 1 or shape[0] > p.size:
+                raise Rejected("bad_shape", f"tensor {p.name!r}: {list(shape)[:4]} escapes for {p.size} entries")
+            forms.append(("uniform", shape[0]))
+            pos += 3
         else:
             few = coded.mode in LEVEL_MODES and first[0] == f"{p.name}/codes"
             forms.append(("codes" if few else "q", p.size))
@@ -365,7 +434,11 @@ def check_coded_values(arrays: dict[str, np.ndarray], coded: CodedTheta, spec: M
         if scale.size and not (scale >= 0).all():
             raise Rejected("bad_field", f"{p.name[:64]!r}: negative scale")
         out[f"{p.name}/scale"] = scale
-        if f"{p.name}/codes" in arrays:
+        if coded.mode == UNIFORM and f"{p.name}/codes" in arrays:
+            out[f"{p.name}/codes"], out[f"{p.name}/escapes"] = arrays[f"{p.name}/codes"], arrays[f"{p.name}/escapes"]
+            out[f"{p.name}/levels"] = join_escapes(unpack_codes(arrays[f"{p.name}/codes"], p.size, _ESCAPE, p.name),
+                                                   arrays[f"{p.name}/escapes"], p.name)
+        elif f"{p.name}/codes" in arrays:
             out[f"{p.name}/codes"] = arrays[f"{p.name}/codes"]
             out[f"{p.name}/levels"] = unpack_codes(arrays[f"{p.name}/codes"], p.size, LEVEL_MODES[coded.mode], p.name)
         else:
@@ -380,7 +453,9 @@ def reconstruct(coded: CodedTheta, spec: ModelSpec, base: Mapping[str, np.ndarra
     """The float32 tensors of a checked coded snapshot (its base's for a delta); digest verified."""
     out = {}
     for p in spec.params:
-        if f"{p.name}/levels" in coded.arrays:
+        if coded.mode == UNIFORM and f"{p.name}/levels" in coded.arrays:
+            decoded = uniform_dequantise(coded.arrays[f"{p.name}/levels"], coded.arrays[f"{p.name}/scale"])
+        elif f"{p.name}/levels" in coded.arrays:
             decoded = level_dequantise(coded.arrays[f"{p.name}/levels"], coded.arrays[f"{p.name}/scale"], coded.chunk,
                                        LEVEL_MODES[coded.mode])
         else:

@@ -75,6 +75,11 @@ def test_every_mode_round_trips_within_its_quantisation_error(mode):
             assert (err <= _chunk_bound(want)).all()
         elif mode == "delta+int8":
             assert (err <= _chunk_bound(want - base[n])).all() and err.max() > 0
+        elif mode == "delta+uniform":  # every entry within the tensor's one step (half of it past +-1)
+            delta = want - base[n]
+            step = 2.0 * np.abs(delta).mean()
+            assert err.max() > 0 and (err <= step * 1.0001 + 1e-6).all()
+            assert (err[np.abs(delta) >= 1.5 * step] <= step / 2 * 1.0001 + 1e-6).all()
         elif mode in LEVEL_MODES:  # every entry moved by one of a chunk's few steps, towards theta
             delta = (want - base[n]).reshape(-1)
             moved = (got.tensors[n] - base[n]).reshape(-1)
@@ -121,7 +126,7 @@ def test_topk_sends_small_tensors_whole_and_the_table_by_its_share():
     assert (recon["grid.table"] != theta0["grid.table"]).sum() == 2000
 
 
-@pytest.mark.parametrize("mode", ["delta+int8", "delta+topk", "delta+ternary", "delta+quinary"])
+@pytest.mark.parametrize("mode", ["delta+int8", "delta+topk", "delta+ternary", "delta+quinary", "delta+uniform"])
 def test_error_feedback_what_is_not_sent_now_is_sent_later(mode):
     """sum of the deltas received + the residual kept == sum of the true deltas; and once theta stops
     moving, the residual drains to the rounding error of the last steps."""
@@ -183,6 +188,26 @@ def test_ternary_costs_under_a_twentieth_and_keeps_every_entry_within_a_round_of
             assert max(sizes) < 4 * spec.num_values / 20, sizes
     one_round = np.sqrt(2) * 1e-3  # the rms of one round's Laplace move
     assert lag["delta+ternary"] < one_round < lag["delta+topk"], lag
+
+
+def test_uniform_spends_the_bytes_where_the_table_moves():
+    """A table whose first level moves 100x more than the rest: one step per tensor leaves a
+    fraction of the quinary code's residual (which clips that level) in fewer bytes."""
+    rng = np.random.default_rng(12)
+    theta0 = {"grid.table": np.zeros((1 << 17, 2), np.float32)}
+    spec = type(SPEC).from_tensors(theta0)
+    scale = np.full((1 << 17, 1), 1e-5, np.float32)
+    scale[: 1 << 14] = 1e-3  # the coarse level: every ray passes through it
+    lag, sizes = {}, {}
+    for mode in ("delta+quinary", "delta+uniform"):
+        enc = SnapshotEncoder(CompressionConfig(compression=mode))
+        enc.seed(theta0)
+        theta, sizes[mode] = theta0, 0
+        for r in range(1, 6):
+            theta = {"grid.table": theta["grid.table"] + rng.laplace(size=(1 << 17, 2)).astype(np.float32) * scale}
+            sizes[mode] += len(enc.encode(ThetaSnapshot(SWARM, 1, r, 0, spec.signature(), theta), spec, "zstd")[0])
+        lag[mode] = float(np.sqrt(np.mean(np.square(theta["grid.table"] - enc.held_by_receivers()[1]["grid.table"]))))
+    assert sizes["delta+uniform"] < sizes["delta+quinary"] and lag["delta+uniform"] < lag["delta+quinary"] / 2, (sizes, lag)
 
 
 def test_lossless_frames_leave_nothing_held_apart_from_theta():
@@ -258,6 +283,17 @@ def _ternary_frame(short: bool = False, **changes) -> tuple[ThetaSnapshot, bytes
     return coded, data
 
 
+def _uniform_frame(**changes) -> bytes:
+    """A delta+uniform frame (the table coded, the 8 biases int8) with arrays replaced."""
+    theta0 = small_tensors(1)
+    cfg = CompressionConfig(compression="delta+uniform", chunk=CHUNK, whole_below=8)
+    coded, _ = code_snapshot(snapshot(), cfg, (2, theta_digest(theta0), theta0))
+    assert coded.coded.arrays["grid.table/escapes"].size >= 2
+    for name, change in changes.items():
+        coded.coded.arrays[name] = change(coded.coded.arrays[name])
+    return codec.encode(coded, spec=SPEC, compression="none")
+
+
 def _planes(gaps: list[int]) -> np.ndarray:
     """Top-k gaps as the byte planes [4, k] of the wire."""
     return np.ascontiguousarray(np.array(gaps, dtype="<u4").view(np.uint8).reshape(-1, 4).T)
@@ -292,6 +328,9 @@ def _hostile() -> list[tuple[str, str, bytes]]:
         ("a ternary byte above 242", "bad_field", _ternary_frame(**{"grid.table/codes": None})[1]),
         ("ternary layout with top-k arrays", "bad_shape", reframe(good, meta={**meta, "code": "delta+ternary"})),
         ("ternary codes one byte short", "bad_shape", _ternary_frame(short=True)[1]),
+        ("an escape too few", "bad_shape", _uniform_frame(**{"grid.table/escapes": lambda e: e[:-1]})),
+        ("an escape of the wrong sign", "bad_field", _uniform_frame(**{"grid.table/escapes": lambda e: -e})),
+        ("an escape under 2 steps", "bad_field", _uniform_frame(**{"grid.table/escapes": np.sign})),
     ]
 
 

@@ -145,7 +145,7 @@ def test_a_loss_that_stays_flat_and_high_is_said_once(tmp_path):
 
 # The daemon's path is the same for every mode (the codes have unit tests); a few-level mode also
 # checks that the daemons run C-ADMM on their own snapshot as received, as the simulation does.
-@pytest.mark.parametrize("mode", ["delta+topk", "delta+quinary"])
+@pytest.mark.parametrize("mode", ["delta+topk", "delta+quinary", "delta+uniform"])
 def test_a_compressed_line_of_three_hears_everyone_at_a_fraction_of_the_bytes(tmp_path, mode):
     """The daemons' own path with compression on: every round every neighbour's delta arrives and
     resolves against theta^0 and then the previous round (no full snapshot after the seed), at a
