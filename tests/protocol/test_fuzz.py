@@ -126,7 +126,7 @@ def _coded(mode: str, **kw: Any) -> bytes:
     """A compressed snapshot (a delta against another snapshot for the delta modes)."""
     base = snapshot(seed=7).tensors
     cfg = CompressionConfig(compression=mode, topk_fraction=0.25, chunk=16,
-                            whole_below=0 if mode in LEVEL_MODES else 16384)  # few-level codes on every tensor
+                            whole_below=0 if mode in LEVEL_MODES or mode == "delta+uniform" else 16384)  # on every tensor
     coded, _ = code_snapshot(snapshot(), cfg, None if mode == "int8" else (4, "0123456789abcdef", base))
     return codec.encode(coded, spec=small_spec(), **kw)
 
@@ -150,6 +150,7 @@ def _bases() -> list[Base]:
         Base(_coded("int8")),
         Base(_coded("delta+ternary")),
         Base(_coded("delta+quinary", compression="none")),
+        Base(_coded("delta+uniform")),
     ]
 
 
