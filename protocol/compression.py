@@ -23,8 +23,8 @@ every round at float32 makes the network, not the CPU, set the pace on a slow li
                   true codes (int8) follow as escapes in entry order. A step per chunk spends
                   the same bits on a chunk that barely moved as on the hash level that moves
                   most, and clips the latter; one step per tensor spends them where the change
-                  is, the least squared error for the bytes (on lego, a third less residual than
-                  quinary at 1/21 of float32; docs/results.md).
+                  is, the least squared error for the bytes (on lego, about half quinary's
+                  residual at 1/21 of float32; docs/results.md).
 
 **Error feedback, CHOCO-SGD style.** The sender keeps a public copy ``x_hat``: exactly what its
 receivers reconstruct. Each delta is ``theta - x_hat``, and ``x_hat`` advances by what was sent,
@@ -39,7 +39,8 @@ a restart) asks for the sender's ``latest``, which is always the full float32 ``
 Frames stay self-describing: the codec's header meta says the mode, chunk, base and digest; the
 array table lists per tensor ``<name>/q`` (int8), ``<name>/scale`` (float32) and, for top-k,
 ``<name>/gaps`` (uint8 [4, k]); a few-level tensor has ``<name>/codes`` (uint8, codes packed in
-base 3 or 5) in place of ``q`` and a scale per chunk and level. All are checked against the
+base 3 or 5) in place of ``q`` and a scale per chunk and level; a uniform one has ``codes``,
+``<name>/escapes`` (int8) and two scales. All are checked against the
 model spec before any allocation.
 Pure Python + numpy; no torch, no zenoh.
 """
@@ -87,10 +88,9 @@ class CompressionConfig:
     # These are the decoders' weights: every ray passes through them, they are ~0.3% of lego's
     # snapshot, and sending them whole gained 0.65 dB there with top-k at 5% (docs/results.md). 0 = none.
     whole_below: int = 16384
-    # delta+ternary/quinary: the rounding step, in units of each chunk's mean |delta| (delta+uniform:
-    # of each tensor's). On
-    # Laplace-like deltas 2 is near the least squared error per bit (entries within one mean of
-    # zero send nothing; what is not sent stays in the residual).
+    # delta+ternary/quinary/uniform: the rounding step, in units of each chunk's (uniform: each
+    # tensor's) mean |delta|. On Laplace-like deltas 2 is near the least squared error per bit
+    # (entries within one mean of zero send nothing; what is not sent stays in the residual).
     level_step: float = 2.0
     chunk: int = 1024  # values per scale: smaller follows the hash levels' ranges closer
 
