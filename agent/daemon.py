@@ -89,7 +89,7 @@ class DaemonConfig:
     realign_from_field_after: int = 4
     plateau: PlateauRule = field(default_factory=PlateauRule)  # when a flat, high loss is worth a warning
     isolated_after: int = 3  # warn after this many rounds in a row without any neighbour's snapshot (0 = never)
-    # How snapshots go on the wire ([daemon.exchange]): delta+quinary (default) | none (float32) | ...
+    # How snapshots go on the wire ([daemon.exchange]): delta+uniform (default) | none (float32) | ...
     exchange: CompressionConfig = field(default_factory=CompressionConfig)
 
     def __post_init__(self) -> None:

@@ -77,7 +77,7 @@ def test_every_mode_round_trips_within_its_quantisation_error(mode):
             assert (err <= _chunk_bound(want - base[n])).all() and err.max() > 0
         elif mode == "delta+uniform":  # every entry within the tensor's one step (half of it past +-1)
             delta = want - base[n]
-            step = 2.0 * np.abs(delta).mean()
+            step = _cfg(mode).level_step * np.abs(delta).mean()
             assert err.max() > 0 and (err <= step * 1.0001 + 1e-6).all()
             assert (err[np.abs(delta) >= 1.5 * step] <= step / 2 * 1.0001 + 1e-6).all()
         elif mode in LEVEL_MODES:  # every entry moved by one of a chunk's few steps, towards theta

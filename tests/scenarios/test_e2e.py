@@ -286,7 +286,7 @@ def test_lossy_slow_link_still_carries_the_model(tmp_path, fault_free):
         recs = {r.round: r for r in telemetry(out, i)}
         late = [k for k in recs if k > netem["robot_rounds"][str(i)] + 1]
         assert late and max(recs) == ROUNDS and (out / f"robots/{i}/done.json").is_file()
-        # the snapshots (delta+quinary, 15-35 KB; after a lost one the deltas since) still cross
+        # the snapshots (the default code, 15-35 KB; after a lost one the deltas since) still cross
         # the link at ~30 KB/s of TCP goodput at this loss and delay, and are used: heard in every
         # round in 8 of 8 runs measured. Before fe1a8f4 a CI run heard 4 of 6, most likely because
         # full pulls (~0.27 MB, ~9 s here) held up the heartbeats behind them past silent_after_s;

@@ -111,7 +111,7 @@ def main(swarm_toml: str, duration: float, listen: str, cert_dir: str | None = N
         if first:
             threading.Thread(target=copy, args=(msg, parsed.receiver), daemon=True).start()
 
-    # The swarm's pushes are deltas (delta+quinary, the default): the rogue follows each sender's
+    # The swarm's pushes are deltas (delta+uniform, the default): the rogue follows each sender's
     # model from theta^0 as a receiver does, and forges plain float32 frames of it
     book = BaseBook()
     for j in targets:

@@ -106,7 +106,7 @@ def test_a_robot_that_hears_no_neighbour_for_three_rounds_says_so_once(tmp_path)
         assert len(isolated) == 1 and isolated[0]["round"] == 3, isolated
     said = [w for w in warnings if "heard none of its neighbours" in w]
     assert sorted(w.split("]")[0] for w in said) == ["[robot 1", "[robot 2"], warnings
-    assert all("delta+quinary" in w and "MB at float32" in w for w in said), said
+    assert all("delta+uniform" in w and "MB at float32" in w for w in said), said
 
 
 def test_a_field_set_against_what_the_images_show_is_said_at_start(tmp_path):
