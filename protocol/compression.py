@@ -75,7 +75,7 @@ _NO_BASE = -1  # base_round of a frame without a base
 class CompressionConfig:
     """How this robot's snapshots go on the wire (``[daemon.exchange]``).
 
-    The default is ``delta+uniform`` at a step of 2.25: on lego 1/21.7 of float32 within 0.05 dB,
+    The default is ``delta+uniform`` at a step of 2.25: on lego 1/21.7 of float32 within 0.11 dB,
     and in the room no loss, where ``delta+quinary`` (step 2.0) cost 2 dB (docs/results.md).
     float32 (``none``) is lossless but 16 MB a round on lego: on 20 and 5 Mbit/s links the
     robots of a 5-ring never heard each other (Zenoh closes a link whose put stays blocked), and
