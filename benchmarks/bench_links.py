@@ -2,7 +2,7 @@
 snapshots on 20 and 5 Mbit/s links, in one invocation on the same data and rounds.
 
     sudo .venv/bin/python benchmarks/bench_links.py [--out runs/bench_links] [--rounds 10] \\
-        [--runs none@0,delta+quinary@20,delta+quinary@5]
+        [--runs none@0,delta+uniform@20,delta+uniform@5]
 
 Each run is ``lego-5-ring`` in netns mode (root: the caps are `tc`, or the link emulator where
 the kernel lacks sch_netem) with
@@ -70,7 +70,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "bench_links")
     ap.add_argument("--rounds", type=int, default=10)
-    ap.add_argument("--runs", default="none@0,delta+quinary@20,delta+quinary@5",
+    ap.add_argument("--runs", default="none@0,delta+uniform@20,delta+uniform@5",
                     help="comma-separated COMPRESSION@RATE_MBIT (0: uncapped); the first is the baseline")
     args = ap.parse_args()
     if os.geteuid() != 0:
