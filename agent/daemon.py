@@ -210,6 +210,8 @@ class Daemon:
         self._warned_flat = False
         self._isolated_rounds = 0  # consecutive rounds in consensus without hearing any neighbour
         self._round_compute_s: float | None = None  # our last round's training time: may we train through a gap?
+        self._round_cpu_compute_s = self._cpu_at_record = 0.0
+        self._pose7_at_record: list[float] = []
 
     def _model_changed(self) -> None:
         """(Re)derive what our snapshots are and what a neighbour's must look like (our box is in it)."""
@@ -362,6 +364,7 @@ class Daemon:
             self.report.event("start", resumed=resumed, alive=sorted(self.membership.alive),
                               reference=self.membership.reference)
             stats0 = self._traffic()
+            self._cpu_at_record = time.process_time()
             if self._in_consensus():
                 self._publish_theta(self.round)
             heard = self._barrier()[0]
@@ -389,13 +392,14 @@ class Daemon:
 
     def _one_round(self, heard_in: dict[int, ThetaSnapshot], stats_before: dict) -> int:
         k = self.round
-        t0 = time.monotonic()
+        t0, cpu0 = time.monotonic(), time.process_time()
         aligned = self._in_consensus()
         self.board.set(phase="training")
         self.trainer.begin_round(k, _to_torch(heard_in if aligned else {}), own=self._as_received(k))
         stats = self.trainer.train(self.training.steps_per_round, on_step=self._check_stop)
         self.round = k + 1
         t_compute = self._round_compute_s = time.monotonic() - t0
+        self._round_cpu_compute_s = time.process_time() - cpu0
         if aligned:  # an unaligned robot's field is in its own frame: nobody may average with it
             self._publish_theta(self.round)
         self.board.set(phase="waiting")
@@ -413,7 +417,7 @@ class Daemon:
         net = self.net.stats()
         self.board.set(phase="round_done", loss=stats.loss, psnr=record.psnr, heard=record.heard,
                        bytes_in_total=net["bytes_in_total"], bytes_out_total=net["bytes_out_total"],
-                       seconds_compute=t_compute, seconds_wait=waited, pose7=self._pose()["params7"])
+                       seconds_compute=t_compute, seconds_wait=waited, pose7=self._pose7_at_record)
         (self.report.warn if record.alignment == "unaligned" else self.report.say)(record.log_line(self.training.rounds))
         self._warn_if_flat(stats.rgb_loss)
         self._warn_if_isolated(record.heard if aligned else None)
@@ -463,9 +467,17 @@ class Daemon:
         raw = self.spec.float32_bytes
         return links, (sum(links.values()) / len(links) / raw if links and raw else None)
 
-    def _pose(self) -> dict:
+    def _cpu_since_record(self) -> float:
+        """What the round cost this robot in CPU (all threads), whatever else the machine ran."""
+        now, before = time.process_time(), self._cpu_at_record
+        self._cpu_at_record = now
+        return now - before
+
+    def _pose(self) -> tuple[Tensor, dict]:
+        """The pose estimate ``[4, 4]`` and its summary, computed once for the round's record and status."""
         with torch.no_grad():
-            return pose_summary(self.trainer.pose.matrix())
+            matrix = self.trainer.pose.matrix().detach()
+            return matrix, pose_summary(matrix)
 
     def _own_psnr(self) -> float | None:
         """PSNR on the robot's own held-out views, when this round is one to evaluate."""
@@ -482,19 +494,21 @@ class Daemon:
         # be counted in the round before the one its snapshot is for, but no byte goes uncounted.
         net = self._traffic_at_record = self._traffic()
         bytes_in = {int(j): net["bytes_in"].get(j, 0) - stats_before["bytes_in"].get(j, 0) for j in net["bytes_in"]}
-        pose, s = self._pose(), self.board.own()
+        matrix, pose = self._pose()
+        self._pose7_at_record, s = pose["params7"], self.board.own()
         links, ratio = self._link_bytes(net, stats_before)
         return RoundRecord(
             robot=self.robot_id, round=self.round, time=time.time(), monotonic=time.monotonic(), loss=stats.loss,
             rgb_loss=stats.rgb_loss, depth_loss=stats.depth_loss, batch_psnr=stats.batch_psnr, psnr=psnr,
-            samples_per_ray=stats.samples_per_ray, pose=self.trainer.pose.matrix().detach().double().cpu().tolist(),
+            samples_per_ray=stats.samples_per_ray, pose=matrix.double().cpu().tolist(),
             pose_rotation_deg=pose["rotation_deg"], pose_translation=pose["translation"], pose_scale=pose["scale"],
             reference=self.membership.reference, elected=self.elected, epoch=self.membership.epoch,
             live_neighbours=sorted(self.membership.live_neighbours), reachable=sorted(self.presence.reachable()),
             heard=heard, bytes_in={j: b for j, b in bytes_in.items() if b},
             bytes_out=net["bytes_out_total"] - stats_before["bytes_out_total"], bytes_out_links=links,
             wire_ratio=ratio, seconds_compute=t_compute,
-            seconds_wait=waited, seconds_last_put=self.exchange.last_put_seconds(), steps=stats.steps,
+            seconds_wait=waited, cpu_seconds=self._cpu_since_record(), cpu_seconds_compute=self._round_cpu_compute_s,
+            seconds_last_put=self.exchange.last_put_seconds(), steps=stats.steps,
             seconds_per_step=stats.seconds / max(stats.steps, 1), rejected=self.report.rejected_counts(),
             alignment=Alignment(s["alignment"]).value, alignment_detail=s["alignment_detail"])
 

@@ -52,6 +52,8 @@ class RoundRecord:
     wire_ratio: float | None = None  # mean of bytes_out_links over the raw float32 snapshot: 1.0 = uncompressed
     seconds_compute: float = 0.0
     seconds_wait: float = 0.0  # at the barrier, waiting for neighbours
+    cpu_seconds: float | None = None  # the process's CPU time (all threads) since the last record
+    cpu_seconds_compute: float | None = None  # ... of which during the training steps
     seconds_last_put: dict[int, float] = field(default_factory=dict)  # per neighbour: the last put's duration
     steps: int = 0
     seconds_per_step: float | None = None

@@ -111,14 +111,18 @@ def per_robot(swarm, i: int, rounds: int, neighbours: frozenset[int]) -> dict:
     """One robot's rounds from its telemetry (agent.telemetry.read_telemetry via the harness)."""
     tel = swarm.telemetry(i)
     done = [t.round for t in tel]
-    over, wait, compute = [], [], []
+    over, wait, compute, cpu_rest, cpu_train = [], [], [], [], []
     for prev, t in zip(tel, tel[1:]):
         over.append(t.monotonic - prev.monotonic - t.seconds_compute)
         wait.append(t.seconds_wait)
         compute.append(t.seconds_compute)
+        if t.cpu_seconds is not None and t.cpu_seconds_compute is not None:
+            cpu_rest.append(t.cpu_seconds - t.cpu_seconds_compute)
+            cpu_train.append(t.cpu_seconds_compute)
     short = sum(1 for t in tel if set(t.heard) != set(neighbours))
     return {"robot": i, "degree": len(neighbours), "rounds_ok": done == list(range(1, rounds + 1)),
             "rounds": len(done), "short": short, "overhead_s": over, "wait_s": wait, "compute_s": compute,
+            "cpu_outside_compute_s": cpu_rest, "cpu_compute_s": cpu_train,
             "span": [tel[0].monotonic, tel[-1].monotonic] if tel else [0.0, 0.0]}
 
 
@@ -177,6 +181,11 @@ def report(info: dict, per_robot_rows: bool = True) -> str:
     wait = [x for r in rs for x in r["wait_s"]]
     comp = [x for r in rs for x in r["compute_s"]]
     rss = [r["peak_rss_mb"] for r in rs]
+    cpu = [x for r in rs for x in r.get("cpu_outside_compute_s", [])]
+    cpu_train = [x for r in rs for x in r.get("cpu_compute_s", [])]
+    cpu_txt = (f"CPU per robot-round: training median {1000 * statistics.median(cpu_train):.1f} ms, "
+               f"outside it median {1000 * statistics.median(cpu):.1f} ms, p95 {1000 * pct(cpu, 0.95):.1f} ms; "
+               if cpu else "")
     ok = all(r["rounds_ok"] for r in rs)
     # One clock for all (CLOCK_MONOTONIC is the host's): robots computing at once, rounds 2..R.
     busy = sum(comp) / (max(r["span"][1] for r in rs) - min(r["span"][0] for r in rs))
@@ -184,7 +193,7 @@ def report(info: dict, per_robot_rows: bool = True) -> str:
                  f"{sum(r['short'] for r in rs)}; robots computing at once {busy:.1f} (on {os.cpu_count()} cores); compute median {1000 * statistics.median(comp):.0f} ms; "
                  f"overhead median {1000 * statistics.median(over):.0f} ms, p95 {1000 * pct(over, 0.95):.0f} ms, "
                  f"max {1000 * max(over):.0f} ms; wait median {1000 * statistics.median(wait):.0f} ms, "
-                 f"p95 {1000 * pct(wait, 0.95):.0f} ms; peak RSS per robot median {statistics.median(rss):.0f} MB, "
+                 f"p95 {1000 * pct(wait, 0.95):.0f} ms; {cpu_txt}peak RSS per robot median {statistics.median(rss):.0f} MB, "
                  f"max {max(rss):.0f} MB; all robots together (PSS) {info['total_pss_mb']:.0f} MB")
     return "\n".join(lines)
 

@@ -58,6 +58,9 @@ def test_three_robots_on_a_line_match_the_in_process_simulation(tmp_path):
         print(f"robot {i}: bytes in per link per round {per_link}, out {statistics.fmean(t.bytes_out for t in tel[1:]):.0f}; "
               f"compute {compute:.2f} s, waiting {wait:.2f} s per round")
         assert all(b > 0 for b in per_link.values())
+        # CPU of the round (all threads) covers its training steps' CPU: what bench_scale splits.
+        cpu = [(t.cpu_seconds_compute, t.cpu_seconds) for t in tel]
+        assert all(0 < train <= whole for train, whole in cpu), cpu
 
 
 def test_a_rogue_peer_is_rejected_by_reason_and_changes_nothing(tmp_path):
