@@ -241,6 +241,7 @@ class ZenohTransport:
         self._served: dict[str, Served] = {}  # key -> what its queryable answers
         self._queryables: dict[str, Any] = {}
         self._publishers: dict[tuple[str, bool], Any] = {}
+        self._publisher_users: dict[tuple[str, bool], int] = {}  # puts in flight: never undeclared under them
         self._publishers_lock = threading.Lock()
 
     # ------------------------------------------------------------------ lifecycle
@@ -399,7 +400,11 @@ class ZenohTransport:
             return "other"
 
     def _publisher(self, key: str, block: bool) -> Any:
-        """A declared publisher for ``key`` (reliable; BLOCK or DROP); the few most recent keys are kept."""
+        """A declared publisher for ``key`` (reliable; BLOCK or DROP), held for one put until
+        :meth:`_release`; the few most recent idle ones are kept. A publisher is never undeclared
+        while a put on it is in flight (snapshots to several neighbours go out at once: with more
+        neighbours than the cache holds, a put failed with "Undeclared publisher" and the
+        neighbour waited for its pull)."""
         evicted = []
         with self._publishers_lock:  # not the counters lock: Zenoh callbacks never wait on this one
             pub = self._publishers.pop((key, block), None)
@@ -411,14 +416,22 @@ class ZenohTransport:
                 pub = self.session.declare_publisher(
                     key, congestion_control=congestion, priority=priority, reliability=zenoh.Reliability.RELIABLE)
             self._publishers[(key, block)] = pub  # most recent last
-            while len(self._publishers) > self.PUBLISHER_CACHE:
-                evicted.append(self._publishers.pop(next(iter(self._publishers))))
+            self._publisher_users[(key, block)] = self._publisher_users.get((key, block), 0) + 1
+            idle = [k for k in self._publishers if k not in self._publisher_users]  # least recent first
+            for k in idle[:max(len(self._publishers) - self.PUBLISHER_CACHE, 0)]:
+                evicted.append(self._publishers.pop(k))
         for old in evicted:
             try:
                 old.undeclare()
             except Exception as exc:
                 log.debug("undeclare publisher: %s", exc)
         return pub
+
+    def _release(self, key: str, block: bool) -> None:
+        with self._publishers_lock:
+            users = self._publisher_users.pop((key, block), 1) - 1
+            if users > 0:
+                self._publisher_users[(key, block)] = users
 
     def publish(self, key: str, data: bytes, block: bool = True) -> None:
         """Reliable put that blocks rather than drops when the link is congested (``block``).
@@ -428,11 +441,17 @@ class ZenohTransport:
         and the next heartbeat makes up for a dropped one anyway.
         """
         try:
-            self._publisher(key, block).put(data)
+            pub = self._publisher(key, block)
         except TransportError:
             raise
         except Exception as exc:
             raise TransportError(f"put on {key} failed: {exc}") from None
+        try:
+            pub.put(data)
+        except Exception as exc:
+            raise TransportError(f"put on {key} failed: {exc}") from None
+        finally:
+            self._release(key, block)
         with self._lock:
             self._bytes_out[self._kind_of(key)] += len(data)
             self._messages_out += 1

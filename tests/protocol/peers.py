@@ -325,6 +325,44 @@ def role_rogue_receiver(args) -> None:
              callback_errors=net.stats()["callback_errors"])
 
 
+def role_publish_many(args) -> None:
+    """Sixteen threads put at once, each on keys of its own (one per round, as snapshots are), more
+    keys than the transport keeps publishers for; a slow subscriber keeps each put in flight."""
+    from protocol.transport import TransportError
+
+    net = transport(args, 0)
+    received: list[str] = []
+    lock = threading.Lock()
+
+    def slow(key: str, data: bytes) -> None:
+        time.sleep(0.005)
+        with lock:
+            received.append(key)
+
+    net.subscribe(net.keys.theta_all(), slow)
+    failures: list[str] = []
+    threads, rounds = 16, 25
+
+    def sender(t: int) -> None:
+        for r in range(1, rounds + 1):
+            try:
+                net.publish(net.keys.theta(t + 1, r, to=0), b"x" * 1000)
+            except TransportError as e:
+                failures.append(str(e))
+
+    workers = [threading.Thread(target=sender, args=(t,)) for t in range(threads)]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join()
+    deadline = time.monotonic() + 10
+    while len(set(received)) < threads * rounds and time.monotonic() < deadline:
+        time.sleep(0.1)
+    emit("published", sent=threads * rounds, received=len(set(received)), failures=failures[:3],
+         failed=len(failures), publishers_kept=len(net._publishers))
+    net.close()
+
+
 def role_self_check(args) -> None:
     """One session alone: callback errors are contained and counted, close() is idempotent."""
     from protocol.transport import TransportError
@@ -371,6 +409,7 @@ ROLES = {
     "big-publisher": role_big_publisher,
     "big-receiver": role_big_receiver,
     "alive": role_alive,
+    "publish-many": role_publish_many,
     "watcher": role_watcher,
     "latest-server": role_latest_server,
     "late-joiner": role_late_joiner,

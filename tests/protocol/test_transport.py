@@ -81,3 +81,12 @@ def test_callback_errors_are_contained_and_close_is_idempotent(peers):
     assert got["from_held"] == [["d4", "d5"], ["d5"], ["newest" * 4]]
     assert "closed" in got["after_close"]
     assert got["stats"]["bytes_out"]["theta"] == 10 and got["stats"]["bytes_out"]["latest"] == 3 * 6 + 2 * 3 + 24
+
+
+def test_concurrent_puts_never_lose_their_publisher(peers):
+    # Snapshots go to every neighbour at once, each on a key of its own: with more neighbours
+    # than the publisher cache, one put undeclared another's publisher mid-flight.
+    got = peers("publish-many", "--listen", str(free_port())).expect("published", 60)
+    assert got["failed"] == 0, got["failures"]
+    assert got["received"] == got["sent"]
+    assert got["publishers_kept"] <= 4  # idle ones are still evicted
