@@ -186,7 +186,7 @@ class Daemon:
         self.trainer = self.setup.trainer
         self.mailbox: Mailbox[ThetaSnapshot] = Mailbox(max_ahead=cfg.max_ahead, last_round=training.rounds)
         self.presence = Presence(network, self.keys, robot_id, swarm.topology, cfg.alive_expiry_s, cfg.heartbeat_s,
-                                 self._stop, self._status_message, lambda st: self.board.heard_from(st.sender, st),
+                                 self._stop, self._status_message, self._heard_status,
                                  lambda j: self.exchange.link_appeared(j), self._membership_changed,
                                  self.report.say, self.report.reject)
         self.membership = self.presence.membership
@@ -258,6 +258,13 @@ class Daemon:
         self.trainer.reset_occupancy()
         self.report.event("entered_consensus", neighbours=sorted(heard))
         self.report.say(f"aligned at round {self.round}: taking the neighbours' model {sorted(heard)}, in consensus now")
+
+    def _heard_status(self, status: Status) -> None:
+        """A neighbour's heartbeat; one claiming a newer round may vouch for a snapshot the barrier holds."""
+        before = self.board.peers().get(status.sender)
+        self.board.heard_from(status.sender, status)
+        if before is None or status.round > before.round:
+            self.mailbox.notify()
 
     def _membership_changed(self, m: Membership) -> None:
         self.mailbox.notify()
@@ -403,6 +410,7 @@ class Daemon:
         if aligned:  # an unaligned robot's field is in its own frame: nobody may average with it
             self._publish_theta(self.round)
         self.board.set(phase="waiting")
+        self.presence.beat_now()
         heard, waited = self._barrier()  # unaligned: for the pace only
         self._apply_reference()  # a failover seen while waiting takes effect now, not next round
         self.trainer.end_round(_to_torch(heard if aligned else {}), own=self._as_received(self.round))

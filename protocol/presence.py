@@ -37,6 +37,7 @@ class Presence:
         self._log, self._reject = log, reject
         self._expect = codec.Expectation(swarm=keys.swarm, allowed_senders=frozenset(topology.ids))
         self._thread: threading.Thread | None = None
+        self._beat = threading.Event()
 
     def start(self) -> None:
         """Declare our token, watch everyone's, listen to the neighbours' heartbeats, start ours."""
@@ -47,8 +48,15 @@ class Presence:
         self._thread = threading.Thread(target=self._heartbeat, name="heartbeat", daemon=True)
         self._thread.start()
 
+    def beat_now(self) -> None:
+        """Send the next heartbeat now: our round changed. A neighbour holding our newer snapshot
+        counts it only once a heartbeat vouches for the round (``SnapshotExchange.credible_round``);
+        waiting out the period cost it up to ``heartbeat_s`` per round."""
+        self._beat.set()
+
     def join(self) -> None:
         """Wait for the heartbeat to end (after ``stop`` is set)."""
+        self._beat.set()
         if self._thread is not None:
             self._thread.join(timeout=2 * self.heartbeat_s + 1)
 
@@ -90,4 +98,5 @@ class Presence:
                 self.net.publish(self.keys.status(self.robot_id), codec.encode(self._status()), block=False)
             except Exception as e:  # never let telemetry kill the robot
                 self._log(f"heartbeat failed: {type(e).__name__}: {e}")
-            self._stop.wait(self.heartbeat_s)
+            self._beat.wait(self.heartbeat_s)
+            self._beat.clear()
