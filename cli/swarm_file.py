@@ -32,6 +32,8 @@ A scenario.toml has the same sections (cli.scenario.spec), so one setting has on
 from __future__ import annotations
 
 import dataclasses
+import random
+import socket
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -218,6 +220,36 @@ def swarm_doc(name: str, robots: list[int], frames: str, topology: TopologyConfi
 def loopback_endpoints(robots: list[int], port_base: int, tls: bool = True) -> dict[str, str]:
     """One port per robot on 127.0.0.1 (local runs: every robot on this machine); tls/ unless insecure."""
     return {str(i): f"{'tls' if tls else 'tcp'}/127.0.0.1:{port_base + i}" for i in robots}
+
+
+def free_loopback_port_base(count: int) -> int:
+    """A base such that base+1 .. base+count are free TCP ports on 127.0.0.1 now (best effort).
+
+    Below the kernel's ephemeral range: a listener port inside it can be taken, before its robot
+    binds it, as the local port of another robot's outgoing connection (it happened with 32 robots)."""
+    low = _ephemeral_low()
+    rng = random.Random()
+    for _ in range(200):
+        base = rng.randrange(10000, max(low - count - 1, 10001))
+        if all(_bindable(base + i) for i in range(1, count + 1)):
+            return base
+    raise RuntimeError(f"no {count} consecutive free ports on 127.0.0.1 below {low}")
+
+
+def _ephemeral_low() -> int:
+    try:
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768  # Linux's default
+
+
+def _bindable(port: int) -> bool:
+    with socket.socket() as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
 
 
 def security_sections(insecure: bool, monitor_dir: str = "monitor") -> dict[str, dict]:

@@ -31,7 +31,6 @@ import json
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -41,7 +40,7 @@ from typing import Callable
 
 from agent.telemetry import RoundRecord
 from cli.config import to_dict
-from cli.swarm_file import security_sections, swarm_doc
+from cli.swarm_file import free_loopback_port_base, security_sections, swarm_doc
 from cli.scenario.spec import FreezeFault, ScenarioSpec, spec_to_dict
 from cli.scenario.tomlout import dumps
 
@@ -66,17 +65,9 @@ def default_up_command(robot: int, data: Path, swarm: Path, run_dir: Path, liste
 
 
 def free_ports(count: int) -> list[int]:
-    """Ports free on loopback right now (held together while choosing, so they are distinct)."""
-    socks = []
-    try:
-        for _ in range(count):
-            s = socket.socket()
-            s.bind(("127.0.0.1", 0))
-            socks.append(s)
-        return [s.getsockname()[1] for s in socks]
-    finally:
-        for s in socks:
-            s.close()
+    """Free loopback ports, one per robot (``cli.swarm_file.free_loopback_port_base``)."""
+    base = free_loopback_port_base(count)
+    return [base + i for i in range(1, count + 1)]
 
 
 def prepare_split(spec: ScenarioSpec, out: Path) -> dict:

@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -19,6 +18,7 @@ from pathlib import Path
 
 from agent.checkpoint import RunFolder
 from agent.telemetry import RoundRecord, read_events, read_telemetry
+from cli.swarm_file import free_loopback_port_base as free_port_base  # noqa: F401 (tests import it from here)
 
 REPO = Path(__file__).resolve().parents[2]
 AGENT = [sys.executable, "-m", "cli"]
@@ -36,27 +36,6 @@ TINY_TRAINING = {
         "occupancy": {"resolution": 32, "warmup_steps": 16, "update_every": 8},
     },
 }
-
-
-def free_port_base(count: int) -> int:
-    """A base such that base+1 .. base+count are free TCP ports on loopback (best effort)."""
-    for _ in range(50):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            base = s.getsockname()[1]
-        if base + count + 1 >= 65535:
-            continue
-        ok = True
-        for i in range(1, count + 1):
-            with socket.socket() as s:
-                try:
-                    s.bind(("127.0.0.1", base + i))
-                except OSError:
-                    ok = False
-                    break
-        if ok:
-            return base
-    raise RuntimeError("no free port range")
 
 
 def merge(a: dict, b: dict) -> dict:
