@@ -18,6 +18,10 @@ ru_maxrss of the child (wait4). RSS counts shared libraries (torch) in full in e
 the swarm's total is the peak of the summed PSS (/proc/<pid>/smaps_rollup: shared pages split
 among their users), sampled every 0.5 s. Every robot must exit 0 with telemetry for rounds 1..R;
 "short" counts rounds in which a robot heard fewer neighbours than its topology gives it.
+CPU per robot-round: the process's CPU time (all threads) of the round and, of it, that of the
+training steps (``cpu_seconds``, ``cpu_seconds_compute``); the rest is what the protocol costs the
+robot, whatever the scheduler did: on a machine with fewer cores than robots the overhead is about
+that CPU times robots per core.
 "Robots computing at once" is all robots' compute time over the span of rounds 2..R (one clock:
 CLOCK_MONOTONIC is the host's): near or above the cores this swarm gets, it is CPU-bound, and
 the barrier waits for neighbours that the scheduler has not run yet.
