@@ -210,8 +210,7 @@ class Daemon:
         self._warned_flat = False
         self._isolated_rounds = 0  # consecutive rounds in consensus without hearing any neighbour
         self._round_compute_s: float | None = None  # our last round's training time: may we train through a gap?
-        self._round_cpu_compute_s = self._cpu_at_record = 0.0
-        self._pose7_at_record: list[float] = []
+        self._cpu_at_record = 0.0  # the process's CPU time at the last round record
 
     def _model_changed(self) -> None:
         """(Re)derive what our snapshots are and what a neighbour's must look like (our box is in it)."""
@@ -406,7 +405,7 @@ class Daemon:
         stats = self.trainer.train(self.training.steps_per_round, on_step=self._check_stop)
         self.round = k + 1
         t_compute = self._round_compute_s = time.monotonic() - t0
-        self._round_cpu_compute_s = time.process_time() - cpu0
+        cpu_compute = time.process_time() - cpu0
         if aligned:  # an unaligned robot's field is in its own frame: nobody may average with it
             self._publish_theta(self.round)
         self.board.set(phase="waiting")
@@ -420,12 +419,14 @@ class Daemon:
             self._maybe_realign(heard)
         self._last_heard = heard
         self._checkpoint()
-        record = self._round_record(stats, sorted(heard) if aligned else [], stats_before, t_compute, waited)
+        pose = self._pose()
+        record = self._round_record(stats, sorted(heard) if aligned else [], stats_before, pose,
+                                    t_compute=t_compute, cpu_compute=cpu_compute, waited=waited)
         self._telemetry.write_line(record.to_json())
         net = self.net.stats()
         self.board.set(phase="round_done", loss=stats.loss, psnr=record.psnr, heard=record.heard,
                        bytes_in_total=net["bytes_in_total"], bytes_out_total=net["bytes_out_total"],
-                       seconds_compute=t_compute, seconds_wait=waited, pose7=self._pose7_at_record)
+                       seconds_compute=t_compute, seconds_wait=waited, pose7=pose[1]["params7"])
         (self.report.warn if record.alignment == "unaligned" else self.report.say)(record.log_line(self.training.rounds))
         self._warn_if_flat(stats.rgb_loss)
         self._warn_if_isolated(record.heard if aligned else None)
@@ -495,27 +496,26 @@ class Daemon:
         scores = self.trainer.evaluate(self.setup.holdout, frame="local", with_ssim=False)["psnr"]
         return sum(scores) / len(scores)
 
-    def _round_record(self, stats, heard: list[int], stats_before: dict, t_compute: float,
-                      waited: float) -> RoundRecord:
+    def _round_record(self, stats, heard: list[int], stats_before: dict, pose: tuple[Tensor, dict], *,
+                      t_compute: float, cpu_compute: float, waited: float) -> RoundRecord:
         psnr = self._own_psnr()
         # Counted from the end of the last round's window: a neighbour already a round ahead may
         # be counted in the round before the one its snapshot is for, but no byte goes uncounted.
         net = self._traffic_at_record = self._traffic()
         bytes_in = {int(j): net["bytes_in"].get(j, 0) - stats_before["bytes_in"].get(j, 0) for j in net["bytes_in"]}
-        matrix, pose = self._pose()
-        self._pose7_at_record, s = pose["params7"], self.board.own()
+        (matrix, summary), s = pose, self.board.own()
         links, ratio = self._link_bytes(net, stats_before)
         return RoundRecord(
             robot=self.robot_id, round=self.round, time=time.time(), monotonic=time.monotonic(), loss=stats.loss,
             rgb_loss=stats.rgb_loss, depth_loss=stats.depth_loss, batch_psnr=stats.batch_psnr, psnr=psnr,
             samples_per_ray=stats.samples_per_ray, pose=matrix.double().cpu().tolist(),
-            pose_rotation_deg=pose["rotation_deg"], pose_translation=pose["translation"], pose_scale=pose["scale"],
+            pose_rotation_deg=summary["rotation_deg"], pose_translation=summary["translation"], pose_scale=summary["scale"],
             reference=self.membership.reference, elected=self.elected, epoch=self.membership.epoch,
             live_neighbours=sorted(self.membership.live_neighbours), reachable=sorted(self.presence.reachable()),
             heard=heard, bytes_in={j: b for j, b in bytes_in.items() if b},
             bytes_out=net["bytes_out_total"] - stats_before["bytes_out_total"], bytes_out_links=links,
             wire_ratio=ratio, seconds_compute=t_compute,
-            seconds_wait=waited, cpu_seconds=self._cpu_since_record(), cpu_seconds_compute=self._round_cpu_compute_s,
+            seconds_wait=waited, cpu_seconds=self._cpu_since_record(), cpu_seconds_compute=cpu_compute,
             seconds_last_put=self.exchange.last_put_seconds(), steps=stats.steps,
             seconds_per_step=stats.seconds / max(stats.steps, 1), rejected=self.report.rejected_counts(),
             alignment=Alignment(s["alignment"]).value, alignment_detail=s["alignment_detail"])
