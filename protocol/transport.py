@@ -405,7 +405,6 @@ class ZenohTransport:
         while a put on it is in flight (snapshots to several neighbours go out at once: with more
         neighbours than the cache holds, a put failed with "Undeclared publisher" and the
         neighbour waited for its pull)."""
-        evicted = []
         with self._publishers_lock:  # not the counters lock: Zenoh callbacks never wait on this one
             pub = self._publishers.pop((key, block), None)
             if pub is None:
@@ -417,21 +416,32 @@ class ZenohTransport:
                     key, congestion_control=congestion, priority=priority, reliability=zenoh.Reliability.RELIABLE)
             self._publishers[(key, block)] = pub  # most recent last
             self._publisher_users[(key, block)] = self._publisher_users.get((key, block), 0) + 1
-            idle = [k for k in self._publishers if k not in self._publisher_users]  # least recent first
-            for k in idle[:max(len(self._publishers) - self.PUBLISHER_CACHE, 0)]:
-                evicted.append(self._publishers.pop(k))
-        for old in evicted:
+            evicted = self._evict_idle()
+        self._undeclare(evicted)
+        return pub
+
+    def _evict_idle(self) -> list[Any]:
+        """The least recently used idle publishers beyond the cache, removed (with the lock held)."""
+        idle = [k for k in self._publishers if k not in self._publisher_users]  # least recent first
+        return [self._publishers.pop(k) for k in idle[:max(len(self._publishers) - self.PUBLISHER_CACHE, 0)]]
+
+    @staticmethod
+    def _undeclare(publishers: list[Any]) -> None:
+        for old in publishers:
             try:
                 old.undeclare()
             except Exception as exc:
                 log.debug("undeclare publisher: %s", exc)
-        return pub
 
     def _release(self, key: str, block: bool) -> None:
+        """One put on ``key`` is done; publishers left idle beyond the cache go now (puts that
+        overlapped kept more of them declared than the cache holds)."""
         with self._publishers_lock:
             users = self._publisher_users.pop((key, block), 1) - 1
             if users > 0:
                 self._publisher_users[(key, block)] = users
+            evicted = self._evict_idle()
+        self._undeclare(evicted)
 
     def publish(self, key: str, data: bytes, block: bool = True) -> None:
         """Reliable put that blocks rather than drops when the link is congested (``block``).
