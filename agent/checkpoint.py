@@ -9,6 +9,7 @@
     <run dir>/done.json                written once every round is done
     <run dir>/data.json                the robot's data folder (and swarm file), so that outputs find its views
     <run dir>/sfm/                     an images-only robot's own SfM, computed once, reused on restart
+    <run dir>/keyframes/               a robot with a ROS 2 bag: its keyframes, read once (agent.data.ros)
 
 Checkpoints and snapshots are state files (``agent.statefile``: safetensors + JSON, checksummed,
 written atomically); ``done.json`` is written atomically too. A file that cannot be used is
@@ -30,16 +31,18 @@ from agent.config_io import ConfigError, from_dict, to_dict
 from agent.data.views import Views
 from agent.files import atomic_write_text
 from agent.statefile import CheckpointError, read_state, write_state
-from agent.swarm import SwarmTrainingConfig, build_robot
+from agent.swarm import RobotSetup, SwarmTrainingConfig, build_robot
 from agent.trainer import RobotTrainer, TrainConfig
 
-__all__ = ["RunFolder", "RobotCheckpoint", "CheckpointError", "CHECKPOINT", "SFM_CACHE", "load_for_eval",
+__all__ = ["RunFolder", "RobotCheckpoint", "CheckpointError", "CHECKPOINT", "SFM_CACHE", "KEYFRAME_CACHE", "load_for_eval",
+           "load_robot",
            "save_baseline", "load_baseline"]
 
 CHECKPOINT = "checkpoint.safetensors"
 LEGACY_CHECKPOINT = "checkpoint.pt"  # torch.save of dinerf before state files: refused
 SNAPSHOT_SUFFIX = ".safetensors"
 SFM_CACHE = "sfm"
+KEYFRAME_CACHE = "keyframes"
 ROUNDS = "rounds"
 TELEMETRY = "telemetry.jsonl"
 EVENTS = "events.jsonl"
@@ -85,6 +88,7 @@ class RunFolder:
     done = property(lambda self: self.path / DONE)
     data_record = property(lambda self: self.path / DATA_RECORD)
     sfm_cache = property(lambda self: self.path / SFM_CACHE)
+    keyframe_cache = property(lambda self: self.path / KEYFRAME_CACHE)
 
     def round_path(self, round_index: int) -> Path:
         return self.path / ROUNDS / f"{round_index:05d}{SNAPSHOT_SUFFIX}"
@@ -94,11 +98,13 @@ class RunFolder:
         found = (self.path / ROUNDS).glob(f"*{SNAPSHOT_SUFFIX}")
         return sorted(int(p.name[:-len(SNAPSHOT_SUFFIX)]) for p in found if p.name[:-len(SNAPSHOT_SUFFIX)].isdigit())
 
-    def load_views(self, data_dir: str | Path, width: int | None) -> Views:
-        """The robot's views as its daemon trains on them: at ``width``; images only: through this run's SfM."""
+    def load_views(self, data_dir: str | Path, width: int | None, sfm=None, ros=None) -> Views:
+        """The robot's views as its daemon trains on them: at ``width``; images only: through this
+        run's SfM; a bag: this run's keyframes (``sfm``, ``ros``: their settings, for a first read)."""
         from agent.data.loaders import load_views
 
-        return load_views(data_dir, width=width, sfm_cache_dir=self.sfm_cache)
+        return load_views(data_dir, width=width, sfm_cache_dir=self.sfm_cache, sfm=sfm, ros=ros,
+                          keyframe_cache_dir=self.keyframe_cache)
 
     def save(self, ck: RobotCheckpoint) -> None:
         write_state(self.checkpoint, ROBOT_KIND, {
@@ -191,6 +197,12 @@ def load_for_eval(run_dir: str | Path, data_dir: str | Path, round: int | None =
     """Rebuild a robot's trainer from its run folder (final checkpoint or ``rounds/<k>``).
 
     device: where to rebuild it (default: the device it trained on), e.g. to render a GPU run on a CPU."""
+    return load_robot(run_dir, data_dir, round, device).trainer
+
+
+def load_robot(run_dir: str | Path, data_dir: str | Path, round: int | None = None,
+               device: str | None = None) -> RobotSetup:
+    """As :func:`load_for_eval`, with the robot's own held-out views beside its trainer."""
     import dataclasses
 
     from agent.config_io import InvalidValue
@@ -206,7 +218,8 @@ def load_for_eval(run_dir: str | Path, data_dir: str | Path, round: int | None =
         except InvalidValue as e:
             raise ConfigError(f"--device: {e}") from None
     views = folder.load_views(data_dir, training.image_width)
-    trainer = build_robot(ck.robot_id, views, ck.box_from_shared, training).trainer
+    setup = build_robot(ck.robot_id, views, ck.box_from_shared, training)
+    trainer = setup.trainer
     load_into(trainer, folder.checkpoint, ck.trainer)
     if round is not None:
         snap = folder.load_round(round, ck.robot_id)
@@ -216,7 +229,7 @@ def load_for_eval(run_dir: str | Path, data_dir: str | Path, round: int | None =
             trainer.pose.load_state_dict(snap["pose"])
         except (KeyError, TypeError, ValueError, RuntimeError) as e:
             raise CheckpointError(folder.round_path(round), f"does not fit this model ({e})") from None
-    return trainer
+    return setup
 
 
 def save_baseline(path: str | Path, trainer: RobotTrainer, cfg: TrainConfig) -> None:

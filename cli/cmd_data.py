@@ -167,6 +167,11 @@ def inspect(
     table.add_column("value")
     fmt = str(v.meta.get("format", "?"))
     table.add_row("format", fmt.upper() if fmt in ("llff", "colmap") else fmt)
+    if isinstance(v.meta.get("bag"), dict):  # a ROS 2 bag: its streams, tf chain, what was kept and why
+        from agent.data.ros import BagReport
+
+        for what, value in BagReport(**v.meta["bag"]).lines():
+            table.add_row(what, value)
     table.add_row("views", f"{len(v)} ({', '.join(v.names[:3])}{', ...' if len(v) > 3 else ''})")
     table.add_row("size", f"{v.width} x {v.height}, {'RGBA' if v.has_alpha else 'RGB'}")
     for what, value in _pixel_rows(v):

@@ -12,7 +12,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from cli.config import ConfigError, apply_overrides, from_dict, load_toml
 from cli.errors import UserError
 
-DATA_HELP = "Dataset: a folder (transforms.json, COLMAP sparse/0, images), a json file, or procedural[:views=100,width=64,seed=0]."
+DATA_HELP = ("Dataset: a folder (transforms.json, COLMAP sparse/0, images), a json file, a ROS 2 bag (rosbag2 folder, "
+             ".mcap, .db3), or procedural[:views=100,width=64,seed=0].")
 RUN_HELP = "A run folder: a scenario's --out (robots/<id>/ + data/), up's runs/<swarm>/, or one robot's --run-dir."
 RUN_DATA_HELP = ("The robots' data folder (a split folder with robot<i>/ inside, or one robot's folder), for run "
                  "folders that do not record it (an older dinerf's); given, it wins over the record.")

@@ -27,8 +27,8 @@ import numpy as np
 from agent.camera import intrinsics_from_opencv_matrix, opencv_camera_matrix, opencv_to_pixel, pixel_to_opencv
 from agent.data.views import DataError
 
-__all__ = ["Lens", "Undistortion", "colmap_lens", "transforms_lens", "undistortion", "COLMAP_LENS_MODELS",
-           "RADTAN_KEYS", "FISHEYE_KEYS"]
+__all__ = ["Lens", "Undistortion", "colmap_lens", "transforms_lens", "ros_lens", "undistortion", "COLMAP_LENS_MODELS",
+           "ROS_LENS_MODELS", "RADTAN_KEYS", "FISHEYE_KEYS"]
 
 RADTAN_KEYS = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")  # cv2's order of the coefficients
 FISHEYE_KEYS = ("k1", "k2", "k3", "k4")
@@ -87,6 +87,31 @@ def transforms_lens(camera_model: str, get: Callable[[str], float | None], fishe
         raise DataError(f"{where}: k4 is not part of the OPENCV model (k1 k2 p1 p2 k3); use OPENCV_FISHEYE for k1 .. k4")
     coeffs = [values[k] for k in ("k1", "k2", "p1", "p2", "k3")]
     return _lens("radtan", coeffs, f"{_flavour(camera_model)} {camera_model or 'OPENCV'}")
+
+
+# sensor_msgs/CameraInfo distortion_model -> (OpenCV model, how many of D it takes, at most)
+ROS_LENS_MODELS: dict[str, tuple[str, int]] = {
+    "plumb_bob": ("radtan", 5),  # k1 k2 p1 p2 k3
+    "rational_polynomial": ("radtan", 8),  # k1 k2 p1 p2 k3 k4 k5 k6
+    "equidistant": ("fisheye", 4),  # k1 k2 k3 k4 (ROS' fisheye)
+}
+
+
+def ros_lens(distortion_model: str, d: list[float], where: str) -> Lens | None:
+    """The lens of a ``sensor_msgs/CameraInfo`` (``distortion_model``, ``d``); None for a pinhole.
+
+    An empty model with all-zero ``d`` is a pinhole (some drivers write nothing); any other model
+    is refused by name rather than treated as one it is not."""
+    if not distortion_model and not any(d):
+        return None
+    if distortion_model not in ROS_LENS_MODELS:
+        raise DataError(f"{where}: distortion_model {distortion_model!r} is not supported "
+                        f"(expected one of {sorted(ROS_LENS_MODELS)})")
+    kind, most = ROS_LENS_MODELS[distortion_model]
+    if len(d) > most and any(d[most:]):
+        raise DataError(f"{where}: {distortion_model} has at most {most} coefficients, got {len(d)}: {list(d)}")
+    coeffs = [float(x) for x in d[:most]] + [0.0] * (most - len(d[:most]))
+    return _lens(kind, coeffs, f"ROS {distortion_model}")  # an equidistant lens stays one with k = 0
 
 
 def _flavour(camera_model: str) -> str:

@@ -9,7 +9,8 @@ One entry point, :func:`load_views`, looks at what it is given and picks the loa
 - a COLMAP sparse model (``sparse/0/`` or a folder with ``cameras``/``images``/``points3D`` as
   ``.bin`` or ``.txt``), read with pycolmap (:mod:`agent.data.colmap`);
 - an LLFF folder: ``poses_bounds.npy`` with ``images/`` and/or ``images_N/`` (:mod:`agent.data.llff`);
-- a folder of images only, handed to ``agent.data.sfm.run_sfm`` when that module is installed.
+- a folder of images only, handed to ``agent.data.sfm.run_sfm`` when that module is installed;
+- a ROS 2 bag (rosbag2 folder, ``.mcap`` or ``.db3``): its keyframes (:mod:`agent.data.ros`).
 
 Every loader returns the conventions of :mod:`agent.data.views` (OpenGL camera-to-world,
 per-view ``fx, fy, cx, cy`` with the pixel centre at ``u + 0.5``, z-depth with 0 = unknown,
@@ -30,6 +31,7 @@ from typing import Any
 from agent.data.colmap import find_colmap_model, load_colmap
 from agent.data.images import IMAGE_EXTENSIONS, list_image_files, resize_views
 from agent.data.llff import POSES_BOUNDS, load_llff
+from agent.data.ros import is_bag, load_bag
 from agent.data.transforms_json import load_transforms
 from agent.data.views import EXPECTED_LAYOUTS, DataError, Views
 
@@ -56,6 +58,8 @@ def load_views(
     sfm_cache_dir: str | Path | None = None,
     sfm: Any = None,
     undistort: bool = True,
+    ros: Any = None,
+    keyframe_cache_dir: str | Path | None = None,
 ) -> Views:
     """Load ``source`` (a path or ``procedural[:k=v,...]``) as :class:`Views`.
 
@@ -84,6 +88,10 @@ def load_views(
     path = Path(source).expanduser()
     if not path.exists():
         raise DataError(f"{path}: no such file or folder; {EXPECTED_LAYOUTS}")
+    if is_bag(path):
+        if not undistort:
+            raise DataError(f"{path}: a bag's lens is always undone (undistort=False is for the image formats)")
+        return load_bag(path, width=width, cfg=ros, cache_dir=keyframe_cache_dir)
     if path.is_file():
         if path.suffix.lower() == ".json":
             return load_transforms(path, width=width, load_depth=load_depth, undistort=undistort)

@@ -30,7 +30,8 @@ class DataError(ValueError):
 # What agent.data.loaders.load_views accepts, for the messages of the errors a user can fix.
 EXPECTED_LAYOUTS = (
     "expected transforms.json, transforms_train.json, a COLMAP model (sparse/0/ or cameras/images/points3D "
-    ".bin|.txt), an LLFF folder (poses_bounds.npy with images/ or images_N/), a folder of images, or 'procedural[:views=100,width=64,seed=0]'"
+    ".bin|.txt), an LLFF folder (poses_bounds.npy with images/ or images_N/), a folder of images, a ROS 2 bag "
+    "(rosbag2 folder, .mcap or .db3), or 'procedural[:views=100,width=64,seed=0]'"
 )
 
 
