@@ -20,48 +20,59 @@ _EXIT_ON = {signal.SIGINT: 130, signal.SIGTERM: 143}  # 128 + the signal, as she
 @friendly_errors
 def up(
     robot_id: int = typer.Option(..., "--id", help="This robot's id (one of the robots listed in the swarm file)."),
-    data: Path = typer.Option(..., "--data", help="This robot's folder (transforms.json + images, from `split`)."),
+    data: Path = typer.Option(..., "--data", help="This robot's recording: a folder (transforms.json, COLMAP, LLFF, "
+                              "images only, or one from `split`) or a ROS 2 bag (rosbag2 folder, .mcap, .db3)."),
     swarm: Path = typer.Option(None, "--swarm", help="Swarm TOML (default: swarm.toml beside or inside --data)."),
+    tls: Path = typer.Option(None, "--tls", help="This robot's certificate folder (default: tls/ inside a data "
+                             "folder, else beside the data)."),
     run_dir: Path = typer.Option(None, "--run-dir", help="Checkpoints and telemetry (default: runs/<swarm>/robot<id>)."),
     listen: list[str] = typer.Option([], "--listen", help="Zenoh endpoint to listen on (repeatable)."),
     connect: list[str] = typer.Option([], "--connect", help="Zenoh endpoint to connect to (repeatable)."),
     overrides: list[str] = typer.Option([], "--set", help="Override a swarm-file setting, e.g. --set training.rounds=5 (repeatable)."),
 ) -> None:
     """Join the swarm and train: one robot's daemon (resumes from --run-dir if it holds a checkpoint)."""
-    from agent.checkpoint import SFM_CACHE, RunFolder
+    from agent.checkpoint import RunFolder
     from agent.daemon import Daemon
     from agent.data.folder import read_scene
-    from agent.data.loaders import load_views
-    from cli.swarm_file import find_swarm_file, load_swarm_file
+    from cli.swarm_file import find_swarm_file, load_swarm_file, robot_tls_dir
     from protocol.keys import Keys
     from protocol.transport import TransportError, ZenohTransport
 
     from cli.options import check_output_folder, progress_listener
 
-    if not data.is_dir():
-        what = "not a folder" if data.exists() else "no such folder"
-        raise UserError(f"--data {data}: {what} (expected a robot folder written by `dinerf-agent split`)")
+    from agent.data.ros import is_bag
+
+    if not data.exists():
+        raise UserError(f"--data {data}: no such file or folder (expected the robot's recording: a data folder or a "
+                        "ROS 2 bag)")
+    if data.is_file() and not is_bag(data):
+        raise UserError(f"--data {data}: not a folder or a ROS 2 bag file (.mcap, .db3)")
     swarm_path = swarm or find_swarm_file(data)
     if swarm_path is None:
         raise UserError(f"no --swarm given and no swarm.toml beside or inside {data}")
     cfg, base_dir = load_swarm_file(swarm_path, overrides)
     if robot_id not in cfg.swarm.robots:
         raise UserError(f"--id {robot_id} is not one of the swarm's robots {cfg.swarm.robots} ({swarm_path})")
-    scene = read_scene(base_dir / cfg.swarm.scene)
+    # no scene file (`init`: robots with their own recordings): the reference derives the box from its views
+    box = read_scene(base_dir / cfg.swarm.scene).box_from_shared if cfg.swarm.scene else None
     run_dir = run_dir or Path("runs") / cfg.swarm.name / f"robot{robot_id}"
     check_output_folder(run_dir, "--run-dir")
-    RunFolder(run_dir).write_data_record(data, swarm_path)  # render/eval/export find the views through it
-    if scene.box_from_shared is None and cfg.daemon.initial_pose != "coarse":
-        raise UserError(f"{base_dir / cfg.swarm.scene} has no field box (robots with images only): set "
-                        "daemon.initial_pose = 'coarse' so that the reference shares the box of its SfM frame")
-    # a folder of images only: SfM on the full-size images (cached), then downscaled to the training width
+    if box is None and cfg.daemon.initial_pose != "coarse":
+        raise UserError(f"{swarm_path}: the swarm has no field box (no scene file, or robots with images only): set "
+                        "daemon.initial_pose = 'coarse' so that the reference shares the box of its own frame")
+    tls_dir = tls if tls is not None else robot_tls_dir(data, cfg.security.tls_dir)
+    transport_cfg = cfg.transport_for(robot_id, listen, connect, tls_dir=tls_dir)  # checks the certificate first
+    folder = RunFolder(run_dir, create=False)  # made once the data loaded: bad data leaves no run folder
+    # images only: SfM on the full-size images (cached); a bag: its keyframes (cached); then downscaled
     with progress_listener():
-        views = load_views(data, width=cfg.training.image_width, sfm_cache_dir=run_dir / SFM_CACHE, sfm=cfg.sfm)
+        views = folder.load_views(data, cfg.training.image_width, sfm=cfg.sfm, ros=cfg.data.ros)
         summary_views = None  # the keyframe summary's features come from the sharper images when there are any
         if cfg.daemon.initial_pose == "coarse" and cfg.daemon.summary_width != cfg.training.image_width:
-            full = load_views(data, width=cfg.daemon.summary_width, sfm_cache_dir=run_dir / SFM_CACHE, sfm=cfg.sfm)
+            full = folder.load_views(data, cfg.daemon.summary_width, sfm=cfg.sfm, ros=cfg.data.ros)
             summary_views = full if full.width != views.width else None
-    transport_cfg = cfg.transport_for(robot_id, listen, connect, data_dir=data)
+    RunFolder(run_dir).write_data_record(data, swarm_path)  # render/eval/export find the views through it
+    if views.meta.get("bag_settings_changed"):
+        LOGGER.warning(f"[robot {robot_id}] {views.meta['notes'][-1]}")
 
     try:
         transport = ZenohTransport(transport_cfg, Keys(cfg.swarm.name), robot_id).open()
@@ -75,7 +86,7 @@ def up(
         daemon.stop()
 
     try:
-        daemon = Daemon(robot_id, views, scene.box_from_shared, cfg.identity(), cfg.training, cfg.daemon,
+        daemon = Daemon(robot_id, views, box, cfg.identity(), cfg.training, cfg.daemon,
                         transport, run_dir, log=_log, summary_views=summary_views, align=cfg.align,
                         warn=LOGGER.warning)
         for sig in _EXIT_ON:

@@ -17,6 +17,7 @@ app = typer.Typer(
 
 # Each module adds its commands to ``app`` on import. Keep this list the single place that names them.
 COMMAND_MODULES = [
+    "cli.cmd_init",
     "cli.cmd_data",
     "cli.cmd_train",
     "cli.cmd_up",

@@ -19,6 +19,7 @@
     [daemon]                     # agent.daemon.DaemonConfig (timeouts, threads, wire dtype ...)
     [align]                      # agent.align.AlignConfig (keyframe summaries, matching)
     [sfm]                        # agent.data.sfm.SfmConfig (robots with images only)
+    [data.ros]                   # agent.data.ros.RosBagConfig (robots with ROS 2 bags)
     [security]                   # protocol.pki.SecurityConfig: mutual TLS + access control, or insecure
 
 Unless ``[security] insecure = true``, every endpoint is ``tls/``, each robot presents the
@@ -41,6 +42,7 @@ from typing import Literal
 
 from agent.align import AlignConfig
 from agent.daemon import DaemonConfig, SwarmIdentity
+from agent.data.config import DataConfig
 from agent.data.sfm import SfmConfig
 from agent.frames import resolve_pose_settings
 from agent.swarm import SwarmTrainingConfig
@@ -60,6 +62,8 @@ class SwarmSection:
     robots: list[int]
     # which frames the robots' poses are in: shared | local | sfm (agent.frames); required
     frames: Literal["shared", "local", "sfm"] | None = None
+    # the field box every robot shares (written by `split`); "": none, the reference derives it
+    # from its own views and sends it with its keyframe summary (`init`: robots' own recordings)
     scene: str = "scene.json"
 
 
@@ -77,6 +81,7 @@ class SwarmFile:
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
     align: AlignConfig = field(default_factory=AlignConfig)
     sfm: SfmConfig = field(default_factory=SfmConfig)
+    data: DataConfig = field(default_factory=DataConfig)
     security: SecurityConfig = field(default_factory=SecurityConfig)
 
     def graph(self) -> Topology:
@@ -92,9 +97,9 @@ class SwarmFile:
         return self.network.endpoints.get(str(robot_id))
 
     def transport_for(self, robot_id: int, listen: list[str], connect: list[str],
-                      data_dir: Path | None = None) -> TransportConfig:
+                      tls_dir: Path | None = None) -> TransportConfig:
         """The robot's transport: flags win; else listen on its endpoint, connect to its neighbours'.
-        In a secure swarm, with the certificate of ``data_dir``/tls and the swarm's access control."""
+        In a secure swarm, with the certificate in ``tls_dir`` and the swarm's access control."""
         from dataclasses import fields
 
         base = {f.name: getattr(self.network, f.name) for f in fields(TransportConfig)}
@@ -107,9 +112,9 @@ class SwarmFile:
         if not self.security.insecure:
             if robot_name(robot_id) in self.security.revoked:
                 raise ConfigError(f"security.revoked: robot {robot_id} is revoked in this swarm file")
-            if data_dir is None:
-                raise ConfigError("a secure swarm needs the robot's data folder (its tls/ certificates)")
-            base.update(self._tls(Path(data_dir) / self.security.tls_dir, robot_name(robot_id)))
+            if tls_dir is None:
+                raise ConfigError("a secure swarm needs the robot's certificate folder (tls/)")
+            base.update(self._tls(Path(tls_dir), robot_name(robot_id)))
         return self._checked(TransportConfig(**base), base["listen"] + base["connect"])
 
     def monitor_transport(self, base_dir: Path, connect: list[str]) -> TransportConfig:
@@ -183,6 +188,13 @@ FRAMES_HELP = ("'shared' (one frame for all, e.g. a split with --frame world), '
                "poses are learnt from a coarse start) or 'sfm' (images only: each robot's own SfM)")
 
 
+def robot_tls_dir(data: Path, tls_dir: str = "tls") -> Path:
+    """A robot's certificates: ``tls/`` inside its data folder (a split's), else beside its recording
+    (``robot3.mcap`` with ``tls/`` next to it); the first is named in the error when neither exists."""
+    candidates = ([data / tls_dir] if data.is_dir() else []) + [data.parent / tls_dir]
+    return next((c for c in candidates if c.is_dir()), candidates[0])
+
+
 def find_swarm_file(data_dir: Path) -> Path | None:
     """Where `split` puts it: beside the robot folders, or inside the robot folder."""
     for candidate in (data_dir.parent / SWARM_FILE, data_dir / SWARM_FILE):
@@ -208,9 +220,9 @@ def write_swarm_file(path: Path, doc: dict, header: str = "") -> Path:
 def swarm_doc(name: str, robots: list[int], frames: str, topology: TopologyConfig | str = "full",
               scene: str = "scene.json", **sections: dict) -> dict:
     """A swarm file's sections as plain data: [swarm], [topology] and any of network, training,
-    daemon, align, sfm, security (dicts of the settings that differ from the defaults, or everything)."""
+    daemon, align, sfm, data, security (dicts of the settings that differ from the defaults, or everything)."""
     topo = TopologyConfig(topology) if isinstance(topology, str) else topology
-    unknown = sorted(set(sections) - {"network", "training", "daemon", "align", "sfm", "security"})
+    unknown = sorted(set(sections) - {"network", "training", "daemon", "align", "sfm", "data", "security"})
     if unknown:
         raise ValueError(f"not swarm-file sections: {unknown}")
     return {"swarm": {"name": name, "robots": list(robots), "frames": frames, "scene": scene}, "topology": to_dict(topo),
@@ -259,3 +271,70 @@ def security_sections(insecure: bool, monitor_dir: str = "monitor") -> dict[str,
     if insecure:
         return {"security": {"insecure": True}, "network": {}}
     return {"security": {"monitor_dir": monitor_dir}, "network": {"tls_verify_name_on_connect": False}}
+
+
+def parse_robot_endpoint(text: str, port_base: int) -> tuple[int, str]:
+    """``--robot 3=HOST[:PORT]`` -> (3, "HOST:PORT"); the port defaults to ``port_base + id``."""
+    rid, eq, where = text.partition("=")
+    try:
+        robot_id = int(rid)
+    except ValueError:
+        robot_id = -1
+    if not eq or robot_id < 1 or not where or where.startswith(":"):
+        raise ConfigError(f"--robot {text!r}: expected ID=HOST or ID=HOST:PORT, e.g. 3=192.168.1.13:7503")
+    host, colon, port = where.rpartition(":") if where.count(":") == 1 else (where, "", "")
+    if colon and not (port.isdigit() and 0 < int(port) < 65536):
+        raise ConfigError(f"--robot {text!r}: port {port!r} is not a port number")
+    return robot_id, f"{host}:{port}" if colon else f"{where}:{port_base + robot_id}"
+
+
+def init_swarm(out: Path, name: str, endpoints: dict[int, str], *, frames: str = "local", topology: str = "full",
+               insecure: bool = False, training: dict | None = None) -> Path:
+    """A swarm for robots that already have their own recordings (no split): ``swarm.toml`` with
+    no scene file (the reference derives the field box), and unless insecure the swarm CA in
+    ``<out>/ca/`` (never in a robot folder), ``<out>/robot<i>/tls/`` and ``<out>/monitor/``.
+
+    endpoints: robot id -> "HOST:PORT" it listens on (its certificate names HOST too)."""
+    from protocol.pki import MONITOR_NAME, create_ca, issue, robot_name
+
+    ids = sorted(endpoints)
+    out.mkdir(parents=True, exist_ok=True)
+    if not insecure:
+        ca = create_ca(out / "ca", name, overwrite=True)
+        for i in ids:
+            issue(ca, robot_name(i), out / f"robot{i}" / "tls", hosts=(endpoints[i].rsplit(":", 1)[0],))
+        issue(ca, MONITOR_NAME, out / "monitor")
+    sec = security_sections(insecure)
+    scheme = "tcp" if insecure else "tls"
+    network = {**sec["network"], "endpoints": {str(i): f"{scheme}/{endpoints[i]}" for i in ids}}
+    doc = swarm_doc(name, ids, frames, topology, scene="", network=network, training=training or {},
+                    security=sec["security"])
+    return write_swarm_file(out / SWARM_FILE, doc, header="written by `dinerf-agent init`; edit freely (see cli/swarm_file.py)")
+
+
+def add_robot(path: Path, robot_id: int, endpoint: str) -> None:
+    """Add ``robot_id`` listening on ``endpoint`` (tls/ or tcp/ HOST:PORT) to a swarm file's roster."""
+    data = load_toml(path)
+    robots = data.setdefault("swarm", {}).setdefault("robots", [])
+    if robot_id in robots:
+        raise ConfigError(f"{path}: robot {robot_id} is already in the swarm's robots {robots}")
+    data["swarm"]["robots"] = sorted(robots + [robot_id])
+    data.setdefault("network", {}).setdefault("endpoints", {})[str(robot_id)] = endpoint
+    header = " ".join(line.lstrip("# ").strip() for line in path.read_text().splitlines()[:1] if line.startswith("#"))
+    write_swarm_file(path, data, header=header)
+
+
+def next_endpoint(cfg: SwarmFile, robot_id: int, host: str | None, port: int | None) -> str:
+    """The endpoint of a robot added to ``cfg``: HOST:PORT as given, else on the pattern of the
+    others (loopback ``base + id``), else a clear error asking for them."""
+    scheme = "tcp" if cfg.security.insecure else "tls"
+    bases = {int(e.rsplit(":", 1)[1]) - int(i) for i, e in cfg.network.endpoints.items() if e.rsplit(":", 1)[-1].isdigit()}
+    hosts = {e.split("/", 1)[-1].rsplit(":", 1)[0] for e in cfg.network.endpoints.values()}
+    if port is None and len(bases) == 1:
+        port = bases.pop() + robot_id
+    if host is None and len(hosts) == 1 and hosts <= {"127.0.0.1", "localhost"}:
+        host = hosts.pop()
+    if host is None or port is None:
+        raise ConfigError(f"where does robot {robot_id} listen? give --host HOST and --port PORT (the other robots' "
+                          f"endpoints follow no single pattern: {sorted(cfg.network.endpoints.values())})")
+    return f"{scheme}/{host}:{port}"

@@ -94,8 +94,8 @@ def test_baseline_checks_its_numbers_and_its_output_folder(tmp_path, junk):
 
 
 def test_a_file_where_a_folder_is_expected_and_a_missing_folder(split, junk, tmp_path):
-    _fails_in_one_line(["up", "--id", 1, "--data", junk["text"]], "not a folder")
-    _fails_in_one_line(["up", "--id", 1, "--data", tmp_path / "absent"], "no such folder")
+    _fails_in_one_line(["up", "--id", 1, "--data", junk["text"]], "not a folder or a ROS 2 bag file")
+    _fails_in_one_line(["up", "--id", 1, "--data", tmp_path / "absent"], "no such file or folder")
     _fails_in_one_line(["up", "--id", 1, "--data", split / "robot1", "--run-dir", junk["text"]],
                        "--run-dir", "exists and is not a folder")
     _fails_in_one_line(["scenario", "run", "quickstart", "--out", junk["text"]], "--out", "exists and is not a folder")
@@ -179,3 +179,45 @@ def test_security_mistakes_and_the_cert_command(split, tmp_path):
     _fails_in_one_line(["up", "--id", 2, "--data", split / "robot2", "--swarm", swarm], "robot 2 is revoked")
     _fails_in_one_line(["cert", "issue", "--ca", split / "ca", "--id", 2, "--out", tmp_path / "r2", "--swarm", swarm],
                        "robot-2 is revoked")
+
+
+def test_a_bag_that_cannot_give_views_is_one_line_and_leaves_no_run_folder(tmp_path):
+    from tests.data import bags
+
+    def bag(name: str, **kw) -> Path:
+        return bags.camera_bag(tmp_path / name, n=4, **kw)
+
+    truncated = bags.camera_bag(tmp_path / "whole", n=4, storage="mcap")
+    mcap = next(truncated.glob("*.mcap"))
+    (tmp_path / "cut.mcap").write_bytes(mcap.read_bytes()[: mcap.stat().st_size // 2])
+    db3 = next(bags.camera_bag(tmp_path / "whole_db", n=4, storage="sqlite3").glob("*.db3"))
+    (tmp_path / "cut_db").mkdir()
+    (tmp_path / "cut_db" / "cut.db3").write_bytes(db3.read_bytes()[:4096])
+    two = bag("two", seed=1)
+    other = bags.write_bag(tmp_path / "two_cams", [
+        (topic, "sensor_msgs/msg/Image", bags.T0, bags.image(bags.T0, np.zeros((4, 4, 3), np.uint8), "rgb8"))
+        for topic in ("/left/image_raw", "/right/image_raw")])
+    empty = bags.write_bag(tmp_path / "empty", [("/tf", "tf2_msgs/msg/TFMessage", bags.T0, bags.tf_message(
+        bags.transform(bags.T0, "odom", "base_link", np.eye(4))))], empty_topics=(("/camera/image_raw", "sensor_msgs/msg/Image"),))
+    cases = {
+        tmp_path / "cut.mcap": "truncated, damaged or not a bag",
+        tmp_path / "cut_db" / "cut.db3": "not a readable rosbag2",
+        bag("bayer", encoding="bayer_rggb8"): "/camera/image_raw: image encoding 'bayer_rggb8' is not supported",
+        bag("no_link", image_frame="camera_on_arm"): "missing tf link",
+        bag("zeros", info={"k": (0.0, 0.0, 0.0, 0.0)}): "no usable intrinsics",
+        bag("no_tf", tf=False): "no /tf or /tf_static",
+        bag("clock", tf_offset_s=3600.0): "clock mismatch",
+        empty: "/camera/image_raw has no messages",
+        other: "2 cameras",
+        tmp_path / "missing.mcap": "no such",
+    }
+    assert two.is_dir()
+    for path, text in cases.items():
+        _fails_in_one_line(["inspect", "--data", path], text)
+    swarm = tmp_path / "swarm"
+    assert runner.invoke(cli.main.app, ["init", "--robots", "1,2", "--out", str(swarm)]).exit_code == 0
+    run_dir = tmp_path / "runs" / "robot1"
+    for path, text in list(cases.items())[:3]:
+        _fails_in_one_line(["up", "--id", 1, "--data", path, "--swarm", swarm / "swarm.toml", "--tls",
+                            swarm / "robot1" / "tls", "--run-dir", run_dir], text)
+        assert not (tmp_path / "runs").exists()  # nothing written: no run folder, no keyframes

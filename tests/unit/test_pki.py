@@ -98,17 +98,17 @@ def test_plain_tcp_needs_insecure_said_explicitly(swarm_pki, tmp_path):
 def test_a_secure_swarm_hands_each_robot_its_certificate_and_the_access_control(swarm_pki):
     d, _ = swarm_pki
     cfg, base = load_swarm_file(write_swarm_file(d / "swarm.toml", _doc(d, secure=True)))
-    t = cfg.transport_for(2, [], [], data_dir=d / "robot2")
+    t = cfg.transport_for(2, [], [], tls_dir=d / "robot2" / "tls")
     assert t.tls_cert == str(d / "robot2" / "tls" / "cert.pem") and t.mtls() and t.access_control["subjects"]
     assert t.listen == ["tls/127.0.0.1:7502"] and t.connect == ["tls/127.0.0.1:7501"]
     with pytest.raises(ConfigError, match="certificate of 'robot-1', not of 'robot-2'"):
-        cfg.transport_for(2, [], [], data_dir=d / "robot1")
+        cfg.transport_for(2, [], [], tls_dir=d / "robot1" / "tls")
     with pytest.raises(ConfigError, match="is not tls/"):
-        cfg.transport_for(2, ["tcp/127.0.0.1:9000"], [], data_dir=d / "robot2")
+        cfg.transport_for(2, ["tcp/127.0.0.1:9000"], [], tls_dir=d / "robot2" / "tls")
     mon = cfg.monitor_transport(base, ["tls/127.0.0.1:7501"])
     assert mon.tls_cert == str(d / "monitor" / "cert.pem") and mon.listen == []
     revoked, _ = load_swarm_file(write_swarm_file(d / "swarm.toml", _doc(d, secure=True, revoked=["robot-2"])))
     with pytest.raises(ConfigError, match="robot 2 is revoked"):
-        revoked.transport_for(2, [], [], data_dir=d / "robot2")
+        revoked.transport_for(2, [], [], tls_dir=d / "robot2" / "tls")
     with pytest.raises(ConfigError, match="not an identity"):
         write_swarm_file(d / "swarm.toml", _doc(d, secure=True, revoked=["3"]))
