@@ -23,10 +23,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from agent.checkpoint import CHECKPOINT, DATA_RECORD, EVENTS, LEGACY_CHECKPOINT, TELEMETRY, RunFolder, load_for_eval
+from agent.checkpoint import CHECKPOINT, DATA_RECORD, EVENTS, LEGACY_CHECKPOINT, TELEMETRY, RunFolder, load_robot
 from agent.data.split import robot_folder
 from agent.data.views import DataError
 from agent.evaluation.run import SwarmRun
+from agent.swarm import RobotSetup
 from agent.telemetry import read_events, read_telemetry
 from agent.trainer import RobotTrainer
 
@@ -76,15 +77,19 @@ class Run:
 
     def load(self, robot_id: int, round: int | None = None, device: str | None = None) -> RobotTrainer:
         """Robot ``robot_id``'s trainer after its last round (or after ``round``), on ``device`` (default: its own)."""
+        return self.load_setup(robot_id, round, device).trainer
+
+    def load_setup(self, robot_id: int, round: int | None = None, device: str | None = None) -> RobotSetup:
+        """As :meth:`load`, with the robot's own held-out views (``training.own_holdout_every``)."""
         robot = self.robots[robot_id]
-        return load_for_eval(robot.run_dir, robot.data_dir, round=round, device=device)
+        return load_robot(robot.run_dir, robot.data_dir, round=round, device=device)
 
     def swarm_run(self) -> SwarmRun:
         """The run as agent.evaluation sees it (needs the split)."""
         if self.split_dir is None:
             raise DataError(f"{self.path}: its data folder is not part of a split written by `dinerf-agent split` "
                             "(no eval/ and truth.json beside it): there are no held-out views to score against")
-        return SwarmRun(self.split_dir, self.run_dirs)
+        return SwarmRun(self.split_dir, self.run_dirs, {i: r.data_dir for i, r in self.robots.items()})
 
 
 def _is_split(folder: Path) -> bool:
@@ -93,10 +98,14 @@ def _is_split(folder: Path) -> bool:
 
 
 def _split_of(data_dirs: list[Path]) -> Path | None:
-    """The one split the robot folders belong to (robot<i>/ beside eval/ and truth.json), if any."""
-    parents = {d.resolve().parent for d in data_dirs}
-    parent = parents.pop() if len(parents) == 1 else None
-    return parent if parent is not None and _is_split(parent) else None
+    """The one split the robot folders belong to (robot<i>/ beside eval/ and truth.json, or a recording
+    inside robot<i>/, as a recording scenario's), if any."""
+    for up in (1, 2):
+        parents = {d.resolve().parents[up - 1] for d in data_dirs}
+        parent = parents.pop() if len(parents) == 1 else None
+        if parent is not None and _is_split(parent):
+            return parent
+    return None
 
 
 def _is_run_folder(path: Path) -> bool:

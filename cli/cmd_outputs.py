@@ -106,22 +106,33 @@ def eval_(
     device: str = typer.Option(None, "--device", help=DEVICE_HELP),
     threads: int = typer.Option(2, help="CPU threads for torch."),
 ) -> None:
-    """PSNR and SSIM of every robot's field on the split's held-out views, per robot and per view."""
+    """PSNR and SSIM of every robot's field: on a split's held-out views (against its truth), and on every robot's
+    own held-out frames through the estimated poses (no truth needed: robots with their own recordings)."""
     from rich.console import Console
 
-    from agent.outputs.scoring import score_heldout
+    from agent.outputs.scoring import score_heldout, score_own_frames
 
     if json_out is not None and json_out.is_dir():
         raise UserError(f"--json {json_out}: is a folder, expected a file name")
     run = _open(run_dir, data, threads)
     robots = run.ids if robot is None else [run.pick(robot)]
-    doc = score_heldout(run, robots, round=round, with_ssim=ssim, device=device, echo=typer.echo)
     console = Console()
-    for note in doc["notes"]:
-        console.print(f"note: {note}", markup=False)
-    console.print(_robot_table(doc))
-    if per_view:
-        console.print(_view_table(doc))
+    doc: dict = {"views": [], "notes": [], "round": round, "robots": {}}
+    if run.split_dir is not None:
+        doc = score_heldout(run, robots, round=round, with_ssim=ssim, device=device, echo=typer.echo)
+        for note in doc["notes"]:
+            console.print(f"note: {note}", markup=False)
+        console.print(_robot_table(doc))
+        if per_view:
+            console.print(_view_table(doc))
+    cross = score_own_frames(run, run.ids, round=round, with_ssim=ssim, device=device, echo=typer.echo)
+    if cross is None and run.split_dir is None:
+        raise UserError(f"{run_dir}: nothing to score against: no split's held-out views (eval/, truth.json) and no "
+                        "robot kept frames of its own out of training (training.own_holdout_every = 0)")
+    if cross is not None:
+        doc["cross"] = cross
+        console.print(_cross_table(cross, robots))
+        console.print(_frames_table(cross))
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps({**doc, "robots": {str(i): r for i, r in doc["robots"].items()}}, indent=2) + "\n")
@@ -141,6 +152,38 @@ def _robot_table(doc: dict):
     for i, r in doc["robots"].items():
         t.add_row(str(i), _fmt(r["psnr"]), _fmt(r.get("ssim"), 3), _fmt(r["psnr_others_only"]),
                   _fmt(r.get("ssim_others_only"), 3), _fmt(r.get("pose_rotation_deg"), 3))
+    return t
+
+
+def _cross_table(cross: dict, robots: list[int]):
+    """PSNR of each robot's field (rows) on each robot's own held-out frames (columns)."""
+    from rich.table import Table
+
+    owners = sorted(cross["frames"], key=int)
+    t = Table(title="each robot's field (row) on each robot's own held-out frames (column), through the estimated "
+                    "poses: PSNR dB / SSIM")
+    t.add_column("field of")
+    for j in owners:
+        t.add_column(f"robot {j} ({cross['frames'][j]} frames)", justify="right")
+    t.add_column("mean on others'", justify="right")
+    for i in map(str, robots):
+        cells = [_fmt(cross["psnr"][i][j]) + (f" / {_fmt(cross['ssim'][i][j], 3)}" if cross["ssim"].get(i) else "")
+                 for j in owners]
+        t.add_row(f"robot {i}", *cells, _fmt(cross["mean_others"][i]))
+    return t
+
+
+def _frames_table(cross: dict):
+    """Where each robot's frame was placed, how sure the coarse step was, and its state."""
+    from rich.table import Table
+
+    t = Table(title="relative poses found (robot's frame -> shared frame)")
+    for col in ("robot", "state", "rotation deg", "|t|", "scale", "coarse step: sigma deg", "via", "inliers"):
+        t.add_column(col, justify="right")
+    for i, r in sorted(cross["robots"].items(), key=lambda kv: int(kv[0])):
+        t.add_row(i, r["alignment"], _fmt(r["rotation_deg"], 2), _fmt(r["translation"], 3), _fmt(r["scale"], 3),
+                  _fmt(r["rotation_sigma_deg"], 3), "-" if r["via"] is None else str(r["via"]),
+                  "-" if r["inliers"] is None else str(r["inliers"]))
     return t
 
 

@@ -29,9 +29,9 @@ from agent.data.views import DataError, Views
 from agent.evaluation.evalset import EvalSet
 from agent.evaluation.run import Echo, SwarmRun, silent
 from agent.evaluation.scores import ImageScores, evaluate_robot
-from agent.geometry import box_from_center
+from agent.geometry import box_from_center, transform_c2w
 from agent.metrics import finite_mean
-from agent.swarm import SwarmTrainingConfig, build_robot
+from agent.swarm import SwarmTrainingConfig, build_robot, own_holdout_split
 from agent.trainer import RobotTrainer, TrainConfig
 
 
@@ -137,6 +137,31 @@ def train_centralised(dataset: str, width: int | None, training: SwarmTrainingCo
                              seconds=time.monotonic() - t, views=len(scores["psnr"]), trainer=run.trainer)
 
 
+def train_centralised_on_robots(run: SwarmRun, training: SwarmTrainingConfig, steps: int,
+                                with_ssim: bool = True) -> CentralisedScores:
+    """The centralised model on exactly the frames the robots trained on (a bag's keyframes, their own
+    held-out frames excepted), each carried into the world by the truth, scored on the split's
+    held-out views: robots that record choose their own frames, so the dataset's views are not theirs."""
+    t = time.monotonic()
+    evalset = EvalSet.from_dir(run.split_dir)
+    parts = []
+    for i in run.ids:
+        views, _ = own_holdout_split(run.folder(i).load_views(run.data_dir(i), training.image_width),
+                                     training.own_holdout_every)
+        world = transform_c2w(evalset.world_from_local(i), views.c2w.double()).float()
+        parts.append(Views(views.images, world, views.intrinsics, [f"robot{i}/{n}" for n in views.names]))
+    views = Views(torch.cat([p.images for p in parts]), torch.cat([p.c2w for p in parts]),
+                  torch.cat([p.intrinsics for p in parts]), [n for p in parts for n in p.names])
+    cfg = replace(training.train, total_steps=steps, seed=training.seed, init_seed=training.seed,
+                  cameras=replace(training.train.cameras, enabled=False))
+    center, half, _ = estimate_scene_box(views, cfg.field.unbounded)
+    trainer = RobotTrainer(views, replace(cfg, pose=replace(cfg.pose, mode="fixed")), box_from_center(center, half))
+    trainer.train(steps)
+    scores = trainer.evaluate(evalset.views, frame="local", with_ssim=with_ssim)
+    return CentralisedScores(psnr=finite_mean(scores["psnr"]), ssim=finite_mean(scores["ssim"]),
+                             seconds=time.monotonic() - t, views=len(scores["psnr"]), trainer=trainer)
+
+
 def train_alone(run: SwarmRun, robot_id: int, training: SwarmTrainingConfig, steps: int,
                 with_ssim: bool = True) -> AloneScores:
     """One robot of ``run`` alone on its own views, pose fixed to the truth (in a worker process: 1 thread).
@@ -169,8 +194,10 @@ def train_alone(run: SwarmRun, robot_id: int, training: SwarmTrainingConfig, ste
 
 def run_baselines(run: SwarmRun, *, dataset: str, width: int | None, training: SwarmTrainingConfig,
                   test_every: int, steps: int, alone: bool = True, with_ssim: bool = True,
-                  echo: Echo = silent) -> Baselines:
-    """Centralised model here; the robots alone in 2 worker processes meanwhile (2 cores: ~half the wall time)."""
+                  echo: Echo = silent, on_robots_frames: bool = False) -> Baselines:
+    """Centralised model here; the robots alone in 2 worker processes meanwhile (2 cores: ~half the wall time).
+
+    on_robots_frames: the centralised model on the frames the robots chose (recordings), not the dataset's."""
     pool = None
     futures = {}
     if alone:
@@ -178,8 +205,10 @@ def run_baselines(run: SwarmRun, *, dataset: str, width: int | None, training: S
         pool = ProcessPoolExecutor(max_workers=min(2, len(run.ids)), mp_context=mp.get_context("spawn"))
         futures = {i: pool.submit(train_alone, run, i, training, steps, with_ssim) for i in run.ids}
     try:
-        echo(f"baseline: centralised model, {steps} steps")
-        result = Baselines(steps, train_centralised(dataset, width, training, test_every, steps, with_ssim))
+        echo(f"baseline: centralised model, {steps} steps" + (" on the robots' kept frames" if on_robots_frames else ""))
+        central = (train_centralised_on_robots(run, training, steps, with_ssim) if on_robots_frames
+                   else train_centralised(dataset, width, training, test_every, steps, with_ssim))
+        result = Baselines(steps, central)
         if futures:
             result.alone = {}
             for i, f in futures.items():

@@ -41,6 +41,7 @@ class SwarmRun:
 
     split_dir: Path  # written by agent.data.split.write_split: robot<i>/, eval/, truth.json, scene.json
     run_dirs: dict[int, Path]  # robot id -> its run folder (agent.checkpoint.RunFolder)
+    data_dirs: dict[int, Path] | None = None  # robot id -> its recording, when not the split's robot<i>/
 
     @property
     def ids(self) -> list[int]:
@@ -50,6 +51,8 @@ class SwarmRun:
         return RunFolder(self.run_dirs[robot_id], create=False)
 
     def data_dir(self, robot_id: int) -> Path:
+        if self.data_dirs is not None and robot_id in self.data_dirs:
+            return self.data_dirs[robot_id]
         return robot_folder(self.split_dir, robot_id)
 
     def load(self, robot_id: int, round: int | None = None) -> RobotTrainer:

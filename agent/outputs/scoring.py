@@ -44,3 +44,19 @@ def score_heldout(run: Run, robots: list[int], round: int | None = None, with_ss
         summary = {k: v for k, v in ev.summary().items() if with_ssim or not k.startswith("ssim")}
         doc["robots"][i] = {**summary, "per_view": per_view}
     return doc
+
+
+def score_own_frames(run: Run, robots: list[int], round: int | None = None, with_ssim: bool = True,
+                     device: str | None = None, echo: Callable[[str], None] = lambda _: None) -> dict | None:
+    """Every robot's field on every robot's own held-out frames through the estimated poses
+    (:mod:`agent.evaluation.cross`); None when no robot kept frames out (``own_holdout_every = 0``)."""
+    from agent.evaluation.cross import score_cross
+
+    setups = {i: run.load_setup(i, round=round, device=device) for i in robots}
+    holdouts = {i: s.holdout for i, s in setups.items() if s.holdout is not None}
+    if not holdouts:
+        return None
+    echo(f"robots {robots}: rendering each other's held-out frames ({sum(len(v) for v in holdouts.values())} frames)")
+    cross = score_cross({i: s.trainer for i, s in setups.items()}, holdouts, with_ssim=with_ssim,
+                        run_dirs={i: run.robots[i].run_dir for i in robots})
+    return cross.to_dict()

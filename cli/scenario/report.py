@@ -61,9 +61,13 @@ def load_run_spec(out: Path) -> ScenarioSpec:
     return spec
 
 
-def swarm_run(out: Path, ids: list[int]) -> SwarmRun:
-    """A scenario's output folder as the evaluation sees it: the split in data/, robot i's run in robots/<i>/."""
-    return SwarmRun(out / "data", {i: out / "robots" / str(i) for i in ids})
+def swarm_run(out: Path, ids: list[int], recorded: bool = False) -> SwarmRun:
+    """A scenario's output folder as the evaluation sees it: the split in data/, robot i's run in robots/<i>/
+    (``recorded``: robot i's data is the bag in data/robot<i>/)."""
+    from cli.scenario.recordings import recording_of
+
+    data = {i: recording_of(out / "data" / f"robot{i}") for i in ids} if recorded else None
+    return SwarmRun(out / "data", {i: out / "robots" / str(i) for i in ids}, data)
 
 
 def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[str], None] = print) -> dict:
@@ -79,13 +83,15 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
     def log(msg: str) -> None:
         echo(f"[report] {msg}")
 
-    run = swarm_run(out, spec.ids)
+    run = swarm_run(out, spec.ids, spec.record.enabled)
     telemetry = {i: read_telemetry(run.folder(i).telemetry) for i in spec.ids}
     opts = ScoringOptions(every=spec.report.eval_every, with_ssim=spec.report.ssim,
                           fit_pose_steps=spec.report.fit_heldout_poses_steps,
                           own_views_every=spec.report.own_views_every)
     scores = score_run(run, opts, log)
     report = _report_doc(spec, run_doc, scores, telemetry)
+    if spec.training.own_holdout_every > 0:  # no truth needed: every robot on every robot's own held-out frames
+        report["cross"] = _cross(run, spec, log)
     baselines = _baselines(spec, run, log) if spec.baseline.enabled else None
     if baselines is not None:
         report["baseline"] = baselines.to_dict()
@@ -116,10 +122,22 @@ def _figures(report: dict, scores: RunScores, spec: ScenarioSpec, out: Path, bas
     return doc
 
 
+def _cross(run: SwarmRun, spec: ScenarioSpec, log: Callable[[str], None]) -> dict:
+    """report.json's "cross": agent.evaluation.cross on the robots' final checkpoints."""
+    from agent.checkpoint import load_robot
+    from agent.evaluation.cross import score_cross
+
+    setups = {i: load_robot(run.run_dirs[i], run.data_dir(i)) for i in run.ids if run.folder(i).checkpoint.exists()}
+    log(f"robots {sorted(setups)} on each other's own held-out frames, through their estimated poses")
+    return score_cross({i: s.trainer for i, s in setups.items()}, {i: s.holdout for i, s in setups.items()},
+                       with_ssim=spec.report.ssim, run_dirs=run.run_dirs).to_dict()
+
+
 def _baselines(spec: ScenarioSpec, run: SwarmRun, echo: Callable[[str], None]) -> Baselines:
     return run_baselines(run, dataset=spec.resolved_dataset(), width=spec.width, training=spec.training,
                          test_every=spec.split.test_every, steps=spec.baseline.steps or spec.training.total_steps,
-                         alone=spec.baseline.alone, with_ssim=spec.report.ssim, echo=echo)
+                         alone=spec.baseline.alone, with_ssim=spec.report.ssim, echo=echo,
+                         on_robots_frames=spec.record.enabled)
 
 
 # --------------------------------------------------------------------------------------------
@@ -206,7 +224,7 @@ def _f(x, fmt=".2f") -> str:
 
 def _markdown(report: dict, spec: ScenarioSpec, ids: list[int]) -> str:
     sections = (_md_header(report, spec), _md_finals(report, ids), _md_final_extras(report, spec, ids),
-                _md_calibration(report, ids), _md_comparison(report, spec, ids), _md_faults(report),
+                _md_cross(report), _md_calibration(report, ids), _md_comparison(report, spec, ids), _md_faults(report),
                 _md_links(report))
     return "\n".join([line for lines in sections + (_md_figures(report),) for line in lines])
 
@@ -241,16 +259,30 @@ def _md_header(report: dict, spec: ScenarioSpec) -> list[str]:
         + (f" (robots' images at {sp['robot_resolution']})" if sp.get("robot_resolution") not in (None, sp.get("resolution")) else "")
         + f", {spec.robots} robots, mean overlap "
         f"{_f(100 * sp['mean_overlap'] if sp.get('mean_overlap') is not None else None, '.0f')}%, "
-        + ("images only (each robot's frame is its own SfM's), " if spec.split.images_only else f"frames `{spec.split.frame}`, ")
+        + ("images only (each robot's frame is its own SfM's), " if spec.split.images_only
+           else "frames: each robot's own odometry frame (its bag's), " if spec.record.enabled
+           else f"frames `{spec.split.frame}`, ")
         + f"topology `{spec.topology.kind}` ({', '.join(f'{a}-{b}' for a, b in spec.links)})",
         f"- training: {spec.training.rounds} rounds x {spec.training.steps_per_round} steps, rho0 "
         f"{spec.training.consensus.rho0:g}, pose `{spec.training.train.pose.mode}`",
         f"- evaluation: {report['heldout_views']} held-out views of the whole scene (every "
         f"{spec.split.test_every}th); 'others only' = held-out views outside the robot's own sector",
         *([f"- data credit: {spec.credit}"] if spec.credit else []),
+        *([_md_recordings(spec, sp.get("recordings") or {})] if spec.record.enabled else []),
         "",
     ]
     return lines + [f"- note: {note}" for note in report.get("notes", [])]
+
+
+def _md_recordings(spec: ScenarioSpec, recordings: dict) -> str:
+    r = spec.record
+    kinds = ", ".join(f"robot {i}: {v['storage']} ({v['images']} images, {v['tf']} transforms)"
+                      for i, v in sorted(recordings.items(), key=lambda kv: int(kv[0])))
+    return (f"- recordings: each robot ran from a ROS 2 bag of its views ({kinds}): images at {r.image_rate_hz:g} Hz "
+            f"({r.encoding}), /tf at {r.tf_rate_factor}x that, camera tilted {r.mount_tilt_deg:g} deg on its mount, "
+            f"lens k1 {r.k1:g} in CameraInfo, each in its own odometry frame (a random rotation and a "
+            f"{r.offset_translation:g}-unit shift); swarm file as `init` writes it (local frames, no scene file); "
+            "pose errors are against those offsets")
 
 
 def _md_finals(report: dict, ids: list[int]) -> list[str]:
@@ -293,6 +325,29 @@ def _md_final_extras(report: dict, spec: ScenarioSpec, ids: list[int]) -> list[s
     )
 
 
+def _md_cross(report: dict) -> list[str]:
+    """Every robot's field on every robot's own held-out frames, and the frames found: what needs no truth."""
+    cross = report.get("cross")
+    if not cross or not cross.get("frames"):
+        return []
+    owners = sorted(cross["frames"], key=int)
+    lines = ["## Without ground truth: each robot's field on each robot's own held-out frames", "",
+             "Robot i's field (row) renders robot j's held-out frames (column) through robot j's *estimated* pose: "
+             "equal rows mean the maps agree and the poses are right.", "",
+             "| field of | " + " | ".join(f"robot {j}'s {cross['frames'][j]} frames" for j in owners)
+             + " | mean on others' |", "|---|" + "---|" * (len(owners) + 1)]
+    for i in sorted(cross["psnr"], key=int):
+        lines.append(f"| robot {i} | " + " | ".join(_f(cross["psnr"][i].get(j)) for j in owners)
+                     + f" | {_f(cross['mean_others'].get(i))} |")
+    lines += ["", "| robot | state | rotation (deg) | |t| | coarse step: rotation sigma (deg) | via | inliers |",
+              "|---|---|---|---|---|---|---|"]
+    for i, r in sorted(cross["robots"].items(), key=lambda kv: int(kv[0])):
+        lines.append(f"| {i} | {r['alignment']} | {_f(r['rotation_deg'])} | {_f(r['translation'], '.3f')} | "
+                     f"{_f(r['rotation_sigma_deg'], '.3f')} | {r['via'] if r['via'] is not None else '-'} | "
+                     f"{r['inliers'] if r['inliers'] is not None else '-'} |")
+    return lines + [""]
+
+
 def _md_calibration(report: dict, ids: list[int]) -> list[str]:
     cals = {i: report["robots"][str(i)].get("calibration") for i in ids}
     if not any(cals.values()):
@@ -321,7 +376,8 @@ def _md_comparison(report: dict, spec: ScenarioSpec, ids: list[int]) -> list[str
     if not b:
         return []
     lines = ["## Comparison (same steps per model)", "",
-             f"Centralised model (all views, true poses, {b['steps']} steps): PSNR **{_f(b['centralised']['psnr'])}** dB, "
+             f"Centralised model ({'the frames the robots kept' if spec.record.enabled else 'all views'}, true poses, "
+             f"{b['steps']} steps): PSNR **{_f(b['centralised']['psnr'])}** dB, "
              f"SSIM {_f(b['centralised']['ssim'], '.3f')}; swarm mean {_f(s['mean_psnr'])} dB "
              f"(gap {_f(s.get('gap_to_centralised_db'))} dB).", ""]
     if "alone" not in b:

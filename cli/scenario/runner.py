@@ -113,7 +113,7 @@ def swarm_document(spec: ScenarioSpec, scene: str, endpoints: dict[int, str] | N
     security = {**to_dict(spec.security), **sec["security"]}
     return swarm_doc(name, spec.ids, spec.frames, spec.topology, scene, network=network, training=to_dict(spec.training),
                      daemon={**to_dict(spec.daemon), "keep_rounds": True}, align=to_dict(spec.align),
-                     sfm=to_dict(spec.sfm), security=security)
+                     sfm=to_dict(spec.sfm), data=to_dict(spec.data), security=security)
 
 
 def link_scheme(spec: ScenarioSpec, endpoints: list[str]) -> list[str]:
@@ -212,11 +212,16 @@ class ScenarioRunner:
         (self.out / "logs").mkdir(exist_ok=True)
         self.echo(f"[scenario] {self.spec.name}: splitting {self.spec.dataset} into {self.spec.robots} robots")
         self.split_summary = prepare_split(self.spec, self.out / "data")
+        if self.spec.record.enabled:
+            from cli.scenario.recordings import record_robots
+
+            self.split_summary["recordings"] = record_robots(self.spec, self.out / "data", self.echo)
         for r in self.robots.values():
             r.run_dir.mkdir(parents=True, exist_ok=True)
 
     def _swarm_toml(self, endpoints: dict[int, str] | None) -> Path:
-        doc = swarm_document(self.spec, "data/scene.json", endpoints, f"{self.spec.name}-{os.getpid()}-{int(time.time()) % 100000}")
+        scene = "" if self.spec.record.enabled else "data/scene.json"  # recordings: the reference derives the box
+        doc = swarm_document(self.spec, scene, endpoints, f"{self.spec.name}-{os.getpid()}-{int(time.time()) % 100000}")
         if self.mode == "netns":
             # Zenoh passes large payloads between processes of one host through shared memory
             # (/dev/shm is not namespaced): only a small reference would cross the emulated link, and
@@ -250,7 +255,12 @@ class ScenarioRunner:
     # --- processes -----------------------------------------------------------------------------
     def _argv(self, i: int) -> list[str]:
         listen, connect = self.endpoints[i]
-        argv = self.up_command(i, self.out / "data" / f"robot{i}", self.swarm, self.robots[i].run_dir, listen, connect)
+        data = self.out / "data" / f"robot{i}"
+        if self.spec.record.enabled:
+            from cli.scenario.recordings import recording_of
+
+            data = recording_of(data)  # its tls/ is beside it
+        argv = self.up_command(i, data, self.swarm, self.robots[i].run_dir, listen, connect)
         return self.lab.exec_argv(i, argv) if self.lab else argv
 
     def _start(self, i: int) -> None:

@@ -27,6 +27,7 @@ error that names it. Example (every table but ``[scenario]`` is optional)::
     [network]                                  # protocol.transport.TransportConfig (lease_ms, ...)
     [align]                                    # agent.align.AlignConfig
     [sfm]                                      # agent.data.sfm.SfmConfig
+    [data.ros]                                 # agent.data.ros.RosBagConfig (robots recording bags)
     [security]                                 # protocol.pki.SecurityConfig: mutual TLS + access
     # insecure = true                          # control unless this says plain TCP (announced by `up`)
 
@@ -61,6 +62,7 @@ from typing import Any, Literal
 from agent.align import AlignConfig
 from agent.daemon import DaemonConfig
 from agent.frames import frames_of_split, resolve_pose_settings
+from agent.data.config import DataConfig
 from agent.data.sfm import SfmConfig
 from agent.data.split import SplitConfig
 from agent.swarm import SwarmTrainingConfig
@@ -234,6 +236,26 @@ class ReportSpec:
 
 
 @dataclass
+class RecordSpec:
+    """Robots that record ROS 2 bags of their views and run from them (cli.scenario.recordings): each
+    in its own odometry frame, with ``init``'s swarm file (local frames, no scene file)."""
+
+    enabled: bool = False
+    storage: list[Literal["mcap", "sqlite3"]] = field(default_factory=lambda: ["mcap", "sqlite3"])  # per robot, in turn
+    image_rate_hz: float = 10.0
+    tf_rate_factor: int = 20  # /tf at this multiple of the image rate
+    encoding: Literal["rgb8", "bgr8", "rgba8", "bgra8", "mono8", "mono16", "jpeg", "png"] = "rgb8"  # png/rgba8: masks
+    k1: float = 0.04  # a pincushion lens put into the pixels and declared in CameraInfo
+    mount_tilt_deg: float = 15.0
+    offset_translation: float = 1.0  # each odometry frame: a random rotation and a shift this long
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.storage or self.image_rate_hz <= 0 or self.tf_rate_factor < 2 or self.k1 < 0:
+            raise ValueError("record: storage must list mcap/sqlite3, image_rate_hz > 0, tf_rate_factor >= 2, k1 >= 0")
+
+
+@dataclass
 class RunSpec:
     mode: Mode = "local"  # local: loopback processes; netns: one network namespace per robot (root)
     timeout_s: float = 900.0  # the whole swarm run, start to done
@@ -260,10 +282,12 @@ class ScenarioSpec:
     daemon: DaemonConfig = field(default_factory=DaemonConfig)
     align: AlignConfig = field(default_factory=AlignConfig)
     sfm: SfmConfig = field(default_factory=SfmConfig)
+    data: DataConfig = field(default_factory=DataConfig)
     security: SecurityConfig = field(default_factory=SecurityConfig)
     faults: FaultsSpec = field(default_factory=FaultsSpec)
     baseline: BaselineSpec = field(default_factory=BaselineSpec)
     report: ReportSpec = field(default_factory=ReportSpec)
+    record: RecordSpec = field(default_factory=RecordSpec)
     run: RunSpec = field(default_factory=RunSpec)
     path: Path | None = None  # the scenario.toml it came from (not a TOML key)
 
@@ -288,7 +312,9 @@ class ScenarioSpec:
 
     @property
     def frames(self) -> str:
-        """The frames the split puts the robots in (agent.frames)."""
+        """The frames the robots' poses are in (agent.frames): the split's, or their bags' odometry frames."""
+        if self.record.enabled:
+            return "local"
         return frames_of_split(self.split.frame, self.split.images_only)
 
     @property
@@ -309,6 +335,8 @@ class ScenarioSpec:
     # --- validation -------------------------------------------------------------------------------
     def _check_images(self) -> None:
         """Robot image width and images-only robots: what they need, said rather than overridden."""
+        if self.record.enabled and self.split.images_only:
+            raise ValueError("record.enabled: the robots record bags with their poses; split.images_only must be false")
         w = self.split.robot_image_width
         if w is not None:
             if self.width is None:
