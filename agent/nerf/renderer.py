@@ -7,6 +7,7 @@ with gradients only on the samples that survive early termination, and composite
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -15,7 +16,7 @@ from torch import Tensor
 from agent.nerf.field import NGPField
 from agent.nerf.occupancy import OccupancyGrid
 from agent.nerf.rays import Rays, transform_rays
-from agent.nerf.sampler import MarchConfig, Samples, exclusive_segment_cumsum, march
+from agent.nerf.sampler import MarchConfig, Samples, exclusive_segment_cumsum, march, segment_starts
 
 
 @dataclass
@@ -87,6 +88,64 @@ def render_rays(
 
 
 @torch.no_grad()
+def render_rays_eval(
+    field: NGPField,
+    grid: OccupancyGrid,
+    rays: Rays,
+    background: Tensor,
+    march_cfg: MarchConfig,
+    box_from_frame: Tensor,
+    level_weights: Tensor | None = None,
+) -> RenderOutput:
+    """:func:`render_rays` for evaluation, with no gradient: each sample's field evaluated once.
+
+    Training needs the visibility pass (a no-grad density pass that finds where each ray stops)
+    before its differentiable one; without gradients both are one pass. The candidates in occupied
+    cells are composited front to back in waves of ranks (``first_wave`` samples of every ray, then
+    twice as many of the rays still transparent, ...), and a ray stops once its transmittance is
+    below ``early_stop_eps``: the samples evaluated are those the training pass would keep, plus
+    at most a wave's overshoot, and the result is the same composite."""
+    box_rays = transform_rays(rays, box_from_frame)
+    to_grid = field.to_grid if getattr(field, "unbounded", False) else None
+    o, d = box_rays.origins, box_rays.directions
+    samples = march(o, d, grid, lambda x: x, march_cfg, None, visibility=False, to_grid=to_grid)
+    r = samples.num_rays
+    color = torch.zeros(r, 3, dtype=o.dtype, device=o.device)
+    dist, opacity = torch.zeros(r, dtype=o.dtype, device=o.device), torch.zeros(r, dtype=o.dtype, device=o.device)
+    evaluated = 0
+    if len(samples):
+        idx_all = samples.ray_index
+        starts, _ = segment_starts(idx_all, r)
+        rank = torch.arange(len(samples), device=o.device) - starts[idx_all]
+        depth_od = torch.zeros(r, dtype=torch.float64, device=o.device)  # optical depth so far, per ray
+        stop = -math.log(march_cfg.early_stop_eps)
+        lo, width, last = 0, march_cfg.first_wave, int(rank.max()) + 1
+        while lo < last:
+            pick = ((rank >= lo) & (rank < lo + width) & (depth_od[idx_all] < stop)).nonzero().squeeze(-1)
+            lo, width = lo + width, width + width // 2  # slower growth than training's: every sample here is a full one
+            if pick.numel() == 0:
+                if not bool((depth_od < stop).any()):
+                    break
+                continue
+            ri, t, dt = idx_all[pick], samples.t_mid[pick], samples.dt[pick]
+            x = o[ri] + t[:, None] * d[ri]
+            sigma, rgb = field(x if to_grid is None else to_grid(x), d[ri], level_weights)
+            sigma_dt = (sigma * dt).double()
+            before = depth_od[ri] + exclusive_segment_cumsum(sigma_dt, ri, r)
+            w = (torch.exp(-before) * (1 - torch.exp(-sigma_dt))).to(o.dtype)  # [W] compositing weights
+            if march_cfg.alpha_threshold > 0:
+                w = w * ((1 - torch.exp(-sigma_dt)) >= march_cfg.alpha_threshold)
+            color.index_add_(0, ri, w[:, None] * rgb)
+            dist.index_add_(0, ri, w * t)
+            opacity.index_add_(0, ri, w)
+            depth_od.index_add_(0, ri, sigma_dt)
+            evaluated += int(pick.numel())
+    bg = background.expand_as(color) if background.ndim == 1 else background
+    return RenderOutput(rgb=color + (1 - opacity[:, None]) * bg, depth=dist * box_rays.z_per_t, opacity=opacity,
+                        num_samples=evaluated, num_visible=evaluated)
+
+
+@torch.no_grad()
 def render_image(
     field: NGPField,
     grid: OccupancyGrid,
@@ -100,10 +159,8 @@ def render_image(
     level_weights: Tensor | None = None,
 ) -> dict[str, Tensor]:
     """Render a whole image in chunks.  -> rgb [H, W, 3], depth [H, W], opacity [H, W]."""
-    parts = [
-        render_rays(field, grid, rays[i : i + chunk], background, march_cfg, box_from_frame, None, level_weights)
-        for i in range(0, len(rays), chunk)
-    ]
+    parts = [render_rays_eval(field, grid, rays[i : i + chunk], background, march_cfg, box_from_frame, level_weights)
+             for i in range(0, len(rays), chunk)]
     return {
         "rgb": torch.cat([p.rgb for p in parts]).reshape(height, width, 3),
         "depth": torch.cat([p.depth for p in parts]).reshape(height, width),

@@ -239,3 +239,25 @@ def test_distortion_loss_is_the_double_sum_and_prefers_one_compact_interval():
     compact[7] = 0.9
     spread = torch.full((10,), 0.09)
     assert float(distortion_loss(compact, one)) < float(distortion_loss(spread, one)) / 10
+
+
+def test_the_evaluation_renderer_composites_what_training_does_evaluating_each_sample_once():
+    from agent.nerf.field import FieldConfig, NGPField
+    from agent.nerf.rays import image_rays
+    from agent.nerf.renderer import render_rays_eval
+
+    torch.manual_seed(0)
+    for unbounded in (False, True):
+        field = NGPField(FieldConfig(unbounded=unbounded, density_bias=1.0))  # a dense fog: rays end early
+        grid = OccupancyGrid(OccupancyConfig(resolution=16))
+        c2w = torch.eye(4)
+        c2w[:3, 3] = torch.tensor([0.1, 0.2, 0.8])
+        rays = image_rays(c2w, torch.tensor([20.0, 20.0, 8.0, 8.0]), 16, 16)
+        cfg = MarchConfig(step_size=0.02)
+        with torch.no_grad():
+            two_pass = render_rays(field, grid, rays, torch.ones(3), cfg, torch.eye(4))
+        one_pass = render_rays_eval(field, grid, rays, torch.ones(3), cfg, torch.eye(4))
+        assert torch.allclose(one_pass.rgb, two_pass.rgb, atol=2e-4)  # up to what lies past termination
+        assert torch.allclose(one_pass.opacity, two_pass.opacity, atol=2e-4)
+        assert torch.allclose(one_pass.depth, two_pass.depth, atol=2e-3)
+        assert 0 < one_pass.num_samples < 2 * two_pass.num_samples  # each evaluated once, a wave's overshoot at most
