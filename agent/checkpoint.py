@@ -8,6 +8,7 @@
     <run dir>/events.jsonl             joins, alignment, failovers, silent neighbours ...
     <run dir>/done.json                written once every round is done
     <run dir>/data.json                the robot's data folder (and swarm file), so that outputs find its views
+    <run dir>/config.toml              the configuration it runs with, every default written out
     <run dir>/sfm/                     an images-only robot's own SfM, computed once, reused on restart
     <run dir>/keyframes/               a robot with a ROS 2 bag: its keyframes, read once (agent.data.ros)
 
@@ -167,6 +168,10 @@ class RunFolder:
                "swarm": None if swarm_file is None else str(Path(swarm_file).resolve())}
         atomic_write_text(self.data_record, json.dumps(doc, indent=2) + "\n")
 
+    def write_config(self, toml: str) -> None:
+        """``config.toml``: the robot's whole configuration, as ``config show`` prints it."""
+        atomic_write_text(self.path / "config.toml", toml)
+
     def recorded_data_dir(self) -> Path | None:
         """The data folder :meth:`write_data_record` wrote, or None when the run folder has no record."""
         from agent.data.views import DataError
@@ -201,8 +206,11 @@ def load_for_eval(run_dir: str | Path, data_dir: str | Path, round: int | None =
 
 
 def load_robot(run_dir: str | Path, data_dir: str | Path, round: int | None = None,
-               device: str | None = None) -> RobotSetup:
-    """As :func:`load_for_eval`, with the robot's own held-out views beside its trainer."""
+               device: str | None = None, views: Views | None = None) -> RobotSetup:
+    """As :func:`load_for_eval`, with the robot's own held-out views beside its trainer.
+
+    views: the robot's views as :meth:`RunFolder.load_views` gives them, when the caller has them
+    already (a report scoring round after round reads them once)."""
     import dataclasses
 
     from agent.config_io import InvalidValue
@@ -217,7 +225,7 @@ def load_robot(run_dir: str | Path, data_dir: str | Path, round: int | None = No
             training = dataclasses.replace(training, train=dataclasses.replace(training.train, device=device))
         except InvalidValue as e:
             raise ConfigError(f"--device: {e}") from None
-    views = folder.load_views(data_dir, training.image_width)
+    views = views if views is not None else folder.load_views(data_dir, training.image_width)
     setup = build_robot(ck.robot_id, views, ck.box_from_shared, training)
     trainer = setup.trainer
     load_into(trainer, folder.checkpoint, ck.trainer)

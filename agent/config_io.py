@@ -15,7 +15,7 @@ import typing
 from pathlib import Path
 from typing import Any, Literal, TypeVar, get_args, get_origin
 
-__all__ = ["ConfigError", "InvalidValue", "check", "from_dict", "to_dict"]
+__all__ = ["ConfigError", "InvalidValue", "check", "from_dict", "to_dict", "merge_tables"]
 
 T = TypeVar("T")
 
@@ -123,6 +123,14 @@ def to_dict(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     return obj
+
+
+def merge_tables(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
+    """``top`` over ``base``, table by table (a key of ``top`` wins)."""
+    out = dict(base)
+    for k, v in top.items():
+        out[k] = merge_tables(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
 
 
 class InvalidValue(ValueError):

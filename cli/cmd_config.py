@@ -32,7 +32,15 @@ def show_cmd(
 
         cfg, _ = load_swarm_file(swarm, overrides)
     else:
+        from agent.data.loaders import load_views
         from cli.cmd_scenario import _load
+        from cli.swarm_file import capture_of, fit_to_capture
 
         cfg = _load(scenario, overrides)
-    typer.echo(dumps(to_dict(cfg), show_unset=True), nl=False)
+        # the settings its images call for (agent.defaults), as the run fits them after its split
+        views = load_views(cfg.resolved_dataset(), width=cfg.split.robot_image_width or cfg.width)
+        capture = capture_of({"unbounded": views.shows_surroundings, "width": views.width}, cfg.training)
+        cfg = fit_to_capture(cfg, cfg.given_train, capture)
+    doc = to_dict(cfg)
+    doc.pop("given_train", None)  # a scenario's own [training.train], already inside [training.train]
+    typer.echo(dumps(doc, show_unset=True), nl=False)

@@ -23,6 +23,10 @@ def init(
                                "odometry frame; poses learnt), shared (one frame for all), sfm (images only)."),
     topology: str = typer.Option("full", "--topology", help="Who talks to whom: full | ring | star | line."),
     port_base: int = typer.Option(7500, "--port-base", help="Robot i listens on port base + i unless given."),
+    width: int = typer.Option(100, "--width", help="The robots train on their images downscaled to this width "
+                              "([training] image_width): it decides the field and sampler (agent.defaults)."),
+    bounded: bool = typer.Option(False, "--bounded", help="The recordings show an object alone (alpha or masks): a "
+                                 "bounded field. Default: cameras that see their surroundings, an unbounded field."),
     rounds: int = typer.Option(None, "--rounds", help="[training] rounds (default: SwarmTrainingConfig's)."),
     steps: int = typer.Option(None, "--steps", help="[training] steps_per_round (default: SwarmTrainingConfig's)."),
     insecure: bool = typer.Option(False, "--insecure", help="Plain TCP, no certificates: anyone who reaches a port "
@@ -55,9 +59,14 @@ def init(
         raise UserError(f"{out / SWARM_FILE} exists: a swarm is already there (pass --force to make a new one, with a "
                         "new CA: every robot then needs its new certificate)")
     name = name or "".join(c if c.isalnum() or c in "-_" else "-" for c in out.resolve().name) or "swarm"
+    if width < 8:
+        raise UserError(f"--width must be >= 8 pixels, got {width}")
     training = {k: v for k, v in (("rounds", rounds), ("steps_per_round", steps)) if v is not None}
+    # every robot must build the same field: the swarm file says what the images are, not each robot's own
+    training.update(image_width=width, train={"field": {"unbounded": not bounded}})
     path = init_swarm(out, name, endpoints, frames=frames, topology=topology, insecure=insecure, training=training)
-    typer.echo(f"swarm '{name}': robots {sorted(endpoints)}, {topology} topology, frames {frames} -> {path}")
+    typer.echo(f"swarm '{name}': robots {sorted(endpoints)}, {topology} topology, frames {frames}, "
+               f"{'bounded' if bounded else 'unbounded'} field at {width} px -> {path}")
     for i in sorted(endpoints):
         what = f"{out}/swarm.toml" + ("" if insecure else f" and {out}/robot{i}/tls/")
         tls = "" if insecure else " --tls tls"

@@ -19,14 +19,15 @@ SCENARIO_HELP = "A scenario name (a folder of scenarios/) or a path to a scenari
 
 
 def _load(name: str, overrides: list[str]):
-    from cli.config import apply_overrides
+    from cli.config import apply_overrides, merge_tables, overrides_table
     from cli.scenario.spec import find_scenario, load_scenario
 
     spec = load_scenario(find_scenario(name))
     if overrides:
-        path = spec.path
+        path, given = spec.path, spec.given_train
         spec = apply_overrides(spec, overrides)
         spec.path = path
+        spec.given_train = merge_tables(given, overrides_table(overrides).get("training", {}).get("train", {}))
     return spec
 
 

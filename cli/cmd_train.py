@@ -35,10 +35,15 @@ def baseline(
     from agent.data.folder import write_png
     from agent.data.loaders import load_views
 
+    from agent.defaults import Capture
+
     set_threads(threads)
     check_output_folder(out, "--out")
-    cfg = load_train_config(config, overrides, total_steps=steps)
+    load_train_config(config, overrides, total_steps=steps)  # a wrong key is said before the images load
     views = load_views(data, width=width)
+    # one model on its own images: they are the capture whose settings it gets (agent.defaults)
+    cfg = load_train_config(config, overrides, total_steps=steps,
+                            capture=Capture(unbounded=views.shows_surroundings, width=views.width))
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     with progress_bar() as bar:

@@ -34,6 +34,8 @@ def up(
     from agent.checkpoint import RunFolder
     from agent.daemon import Daemon
     from agent.data.folder import read_scene
+    from cli.config import to_dict
+    from cli.scenario.tomlout import dumps
     from cli.swarm_file import find_swarm_file, load_swarm_file, robot_tls_dir
     from protocol.keys import Keys
     from protocol.transport import TransportError, ZenohTransport
@@ -70,7 +72,9 @@ def up(
         if cfg.daemon.initial_pose == "coarse" and cfg.daemon.summary_width != cfg.training.image_width:
             full = folder.load_views(data, cfg.daemon.summary_width, sfm=cfg.sfm, ros=cfg.data.ros)
             summary_views = full if full.width != views.width else None
-    RunFolder(run_dir).write_data_record(data, swarm_path)  # render/eval/export find the views through it
+    run_folder = RunFolder(run_dir)
+    run_folder.write_data_record(data, swarm_path)  # render/eval/export find the views through it
+    run_folder.write_config(dumps(to_dict(cfg), show_unset=True))  # what it runs with, agent.defaults fitted
     if views.meta.get("bag_settings_changed"):
         LOGGER.warning(f"[robot {robot_id}] {views.meta['notes'][-1]}")
 

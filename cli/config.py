@@ -13,9 +13,9 @@ import tomllib
 from pathlib import Path
 from typing import Any, TypeVar
 
-from agent.config_io import ConfigError, from_dict, to_dict
+from agent.config_io import ConfigError, from_dict, merge_tables, to_dict
 
-__all__ = ["ConfigError", "from_dict", "to_dict", "load_toml", "apply_overrides"]
+__all__ = ["ConfigError", "from_dict", "to_dict", "load_toml", "apply_overrides", "overrides_table", "merge_tables"]
 
 T = TypeVar("T")
 
@@ -41,6 +41,19 @@ def _parse_scalar(text: str) -> Any:
         return tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
         return text  # a bare word is a string
+
+
+def overrides_table(overrides: list[str]) -> dict[str, Any]:
+    """``a.b.c=value`` overrides as the nested table they set (what was given, as a file would give it)."""
+    table: dict[str, Any] = {}
+    for item in overrides:
+        key, _, text = item.partition("=")
+        *parents, last = key.strip().split(".")
+        node = table
+        for p in parents:
+            node = node.setdefault(p, {}) if isinstance(node.get(p, {}), dict) else {}
+        node[last] = _parse_scalar(text.strip())
+    return table
 
 
 def apply_overrides(cfg: T, overrides: list[str]) -> T:

@@ -9,7 +9,7 @@ from typing import Iterator
 
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from cli.config import ConfigError, apply_overrides, from_dict, load_toml
+from cli.config import ConfigError, apply_overrides, from_dict, load_toml, merge_tables, overrides_table
 from cli.errors import UserError
 
 DATA_HELP = ("Dataset: a folder (transforms.json, COLMAP sparse/0, images), a json file, a ROS 2 bag (rosbag2 folder, "
@@ -34,8 +34,10 @@ def check_output_folder(path: Path, option: str) -> None:
         raise UserError(f"{option} {path}: exists and is not a folder")
 
 
-def load_train_config(path: Path | None, overrides: list[str], total_steps: int | None = None):
-    """TrainConfig from the [train] table of a TOML file (if any), then --set overrides."""
+def load_train_config(path: Path | None, overrides: list[str], total_steps: int | None = None, capture=None):
+    """TrainConfig from the [train] table of a TOML file (if any), then --set overrides, over what the
+    ``capture`` calls for (``agent.defaults``; None: the dataclass defaults)."""
+    from agent.defaults import fit_train
     from agent.trainer import TrainConfig
 
     if total_steps is not None and total_steps < 1:
@@ -44,7 +46,11 @@ def load_train_config(path: Path | None, overrides: list[str], total_steps: int 
     cfg = from_dict(TrainConfig, data, "train")
     if total_steps is not None:
         cfg = dataclasses.replace(cfg, total_steps=total_steps)
-    return apply_overrides(cfg, overrides)
+    cfg = apply_overrides(cfg, overrides)  # checks every key before the capture fills the rest
+    if capture is None:
+        return cfg
+    given = merge_tables(data, overrides_table(overrides))
+    return dataclasses.replace(from_dict(TrainConfig, fit_train(given, capture), "train"), total_steps=cfg.total_steps)
 
 
 def progress_bar() -> Progress:

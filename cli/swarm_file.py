@@ -43,10 +43,13 @@ from typing import Literal
 from agent.align import AlignConfig
 from agent.daemon import DaemonConfig, SwarmIdentity
 from agent.data.config import DataConfig
+from agent.data.folder import read_scene
+from agent.defaults import Capture, fit_train
 from agent.data.sfm import SfmConfig
 from agent.frames import resolve_pose_settings
 from agent.swarm import SwarmTrainingConfig
-from cli.config import ConfigError, apply_overrides, from_dict, load_toml, to_dict
+from agent.trainer import TrainConfig
+from cli.config import ConfigError, apply_overrides, from_dict, load_toml, merge_tables, overrides_table, to_dict
 from protocol.acl import access_control
 from protocol.keys import Keys, validate_swarm
 from protocol.membership import Topology, TopologyConfig, TopologyError
@@ -158,7 +161,32 @@ def load_swarm_file(path: Path, overrides: list[str] = ()) -> tuple[SwarmFile, P
                           "(kind = \"ring\", edges = [[1, 2]], hub = 1), as in scenario.toml")
     cfg = from_dict(SwarmFile, data, "")
     cfg = apply_overrides(cfg, list(overrides))
-    return _validate(cfg), path.resolve().parent
+    base = path.resolve().parent
+    given = merge_tables(((data.get("training") or {}).get("train") or {}),
+                         overrides_table(list(overrides)).get("training", {}).get("train", {}))
+    return _validate(fit_to_capture(cfg, given, swarm_capture(cfg, base))), base
+
+
+def swarm_capture(cfg: SwarmFile, base_dir: Path) -> Capture:
+    """What the swarm's images are: its scene file's capture (a split's), the training width and the
+    field kind the swarm file sets (robots with their own recordings: `init` writes both)."""
+    scene = base_dir / cfg.swarm.scene if cfg.swarm.scene else None
+    return capture_of(read_scene(scene).capture if scene is not None and scene.is_file() else None, cfg.training)
+
+
+def capture_of(scene_capture: dict | None, training: SwarmTrainingConfig) -> Capture:
+    """A capture from a scene file's (or None) and the training settings, which win where they are set."""
+    known = scene_capture or {}
+    unbounded = training.train.field.unbounded
+    return Capture(unbounded=unbounded if unbounded is not None else known.get("unbounded"),
+                   width=training.image_width or known.get("width"))
+
+
+def fit_to_capture(cfg, given: dict, capture: Capture):
+    """``cfg`` (a swarm file or a scenario) with ``[training.train]`` as ``given`` over what ``capture``
+    calls for (agent.defaults)."""
+    train = from_dict(TrainConfig, fit_train(given, capture), "training.train")
+    return dataclasses.replace(cfg, training=dataclasses.replace(cfg.training, train=train))
 
 
 def _validate(cfg: SwarmFile) -> SwarmFile:

@@ -122,6 +122,9 @@ class SceneInfo:
     # (the reference derives the box from its SfM at start and shares it with the keyframes).
     box_from_shared: Tensor | None
     reference_id: int
+    # what the robots' images are, for the settings they call for (agent.defaults.Capture): None
+    # in a scene.json from before it was written
+    capture: dict | None = None
 
 
 def read_scene(path: str | Path) -> SceneInfo:
@@ -134,11 +137,15 @@ def read_scene(path: str | Path) -> SceneInfo:
         raw = data["box_from_shared"]
         box = None if raw is None else torch.tensor(raw, dtype=torch.float64)
         ref = int(data["reference_id"])
+        capture = data.get("capture")
+        if capture is not None:
+            capture = {"unbounded": bool(capture["unbounded"]), "width": int(capture["width"])}
     except (KeyError, TypeError, ValueError) as e:
-        raise DataError(f"{path}: expected 'box_from_shared' (4x4, or null) and 'reference_id': {e}") from None
+        raise DataError(f"{path}: expected 'box_from_shared' (4x4, or null), 'reference_id' and optionally "
+                        f"'capture' (unbounded, width): {e}") from None
     if box is not None and (box.shape != (4, 4) or not torch.isfinite(box).all()):
         raise DataError(f"{path}: box_from_shared must be a finite 4x4 matrix (or null)")
-    return SceneInfo(box, ref)
+    return SceneInfo(box, ref, capture)
 
 
 def read_truth(path: str | Path) -> dict:

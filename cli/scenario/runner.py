@@ -99,6 +99,15 @@ def prepare_split(spec: ScenarioSpec, out: Path) -> dict:
     }
 
 
+def fit_scenario(spec: ScenarioSpec, split_dir: Path) -> ScenarioSpec:
+    """``spec`` with ``[training.train]`` fitted to the capture its split wrote (agent.defaults); what the
+    scenario set itself stays."""
+    from agent.data.folder import read_scene
+    from cli.swarm_file import capture_of, fit_to_capture
+
+    return fit_to_capture(spec, spec.given_train, capture_of(read_scene(split_dir).capture, spec.training))
+
+
 def swarm_document(spec: ScenarioSpec, scene: str, endpoints: dict[int, str] | None, name: str,
                    monitor_dir: str = "data/monitor") -> dict:
     """The swarm TOML (as a dict) every robot of a scenario gets: the scenario's swarm sections,
@@ -212,6 +221,7 @@ class ScenarioRunner:
         (self.out / "logs").mkdir(exist_ok=True)
         self.echo(f"[scenario] {self.spec.name}: splitting {self.spec.dataset} into {self.spec.robots} robots")
         self.split_summary = prepare_split(self.spec, self.out / "data")
+        self.spec = fit_scenario(self.spec, self.out / "data")  # the settings the split's images call for
         if self.spec.record.enabled:
             from cli.scenario.recordings import record_robots
 

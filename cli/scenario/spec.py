@@ -290,6 +290,9 @@ class ScenarioSpec:
     record: RecordSpec = field(default_factory=RecordSpec)
     run: RunSpec = field(default_factory=RunSpec)
     path: Path | None = None  # the scenario.toml it came from (not a TOML key)
+    # [training.train] as the file (and --set) gave it: what agent.defaults fills once the capture is
+    # known (after the split) leaves these alone (not a TOML key)
+    given_train: dict[str, Any] = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         if self.robots < 1:
@@ -446,6 +449,7 @@ def load_scenario(path: str | Path) -> ScenarioSpec:
     except ConfigError as e:
         raise ConfigError(f"{path}: {e}") from None
     spec.path = path.resolve()
+    spec.given_train = dict((data.get("training") or {}).get("train") or {})
     return spec
 
 
@@ -483,6 +487,6 @@ def spec_to_dict(spec: ScenarioSpec) -> dict[str, Any]:
     """The spec as plain data (for report.json)."""
     from cli.config import to_dict
 
-    d = {f.name: to_dict(getattr(spec, f.name)) for f in dataclasses.fields(spec) if f.name != "path"}
+    d = {f.name: to_dict(getattr(spec, f.name)) for f in dataclasses.fields(spec) if f.name not in ("path", "given_train")}
     d["path"] = str(spec.path) if spec.path else None
     return d

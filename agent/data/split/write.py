@@ -155,10 +155,13 @@ def _split_record(result: SplitResult) -> dict:
 
 
 def _scene(result: SplitResult) -> dict:
-    """``scene.json``: the shared frame's field box, which every robot reads."""
+    """``scene.json``: the shared frame's field box and what the robots' images are, which every robot reads."""
+    views = result.robots[result.reference_id].views
+    capture = {"unbounded": views.shows_surroundings, "width": views.width}  # agent.defaults.Capture
     if result.config.images_only:
         return {
             "reference_id": result.reference_id,
+            "capture": capture,
             "box_from_shared": None,
             "description": (
                 "The robots have images only, so the shared frame g is the reference robot's own SfM frame, "
@@ -168,6 +171,7 @@ def _scene(result: SplitResult) -> dict:
         }
     return {
         "reference_id": result.reference_id,
+        "capture": capture,
         "box_from_shared": matrix_to_list(result.box_from_shared),
         "description": (
             "box_from_shared maps the shared frame g (the local frame of the reference robot) into the "
