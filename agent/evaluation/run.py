@@ -13,17 +13,18 @@ be fitted is not scored, and none is when the reference's cannot (it defines the
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from agent.checkpoint import RunFolder, load_for_eval
+from agent.checkpoint import RunFolder, load_robot
 from agent.consensus import disagreement
 from agent.data.split import robot_folder
 from agent.data.views import DataError
 from agent.evaluation.evalset import EvalSet
 from agent.evaluation.scores import ImageScores, RobotEval, evaluate_robot
 from agent.progress import track
+from agent.swarm import RobotSetup
 from agent.trainer import RobotTrainer
 
 __all__ = ["SwarmRun", "ScoringOptions", "RoundScores", "RunScores", "score_run", "calibrate_frames"]
@@ -42,6 +43,7 @@ class SwarmRun:
     split_dir: Path  # written by agent.data.split.write_split: robot<i>/, eval/, truth.json, scene.json
     run_dirs: dict[int, Path]  # robot id -> its run folder (agent.checkpoint.RunFolder)
     data_dirs: dict[int, Path] | None = None  # robot id -> its recording, when not the split's robot<i>/
+    _views: dict = field(default_factory=dict, compare=False, repr=False)  # robot id -> its views, read once
 
     @property
     def ids(self) -> list[int]:
@@ -57,7 +59,15 @@ class SwarmRun:
 
     def load(self, robot_id: int, round: int | None = None) -> RobotTrainer:
         """The robot's trainer as it was after ``round`` (default: its last checkpoint)."""
-        return load_for_eval(self.run_dirs[robot_id], self.data_dir(robot_id), round=round)
+        return self.load_setup(robot_id, round).trainer
+
+    def load_setup(self, robot_id: int, round: int | None = None) -> RobotSetup:
+        """As :meth:`load`, with its own held-out views; the robot's views are read once per run."""
+        if robot_id not in self._views:
+            ck = self.folder(robot_id).load()
+            width = ck.training.image_width if ck is not None else None
+            self._views[robot_id] = self.folder(robot_id).load_views(self.data_dir(robot_id), width)
+        return load_robot(self.run_dirs[robot_id], self.data_dir(robot_id), round=round, views=self._views[robot_id])
 
     def snapshot_rounds(self) -> dict[int, list[int]]:
         return {i: self.folder(i).snapshot_rounds() for i in self.ids}

@@ -88,16 +88,26 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
     opts = ScoringOptions(every=spec.report.eval_every, with_ssim=spec.report.ssim,
                           fit_pose_steps=spec.report.fit_heldout_poses_steps,
                           own_views_every=spec.report.own_views_every)
-    scores = score_run(run, opts, log)
+    parts: dict[str, float] = {}  # how long each part of the report took (s)
+
+    def timed(part: str, fn):
+        t = time.monotonic()
+        try:
+            return fn()
+        finally:
+            parts[part] = time.monotonic() - t
+
+    scores = timed("scoring", lambda: score_run(run, opts, log))
     report = _report_doc(spec, run_doc, scores, telemetry)
     if spec.training.own_holdout_every > 0:  # no truth needed: every robot on every robot's own held-out frames
-        report["cross"] = _cross(run, spec, log)
-    baselines = _baselines(spec, run, log) if spec.baseline.enabled else None
+        report["cross"] = timed("cross", lambda: _cross(run, spec, log))
+    baselines = timed("baselines", lambda: _baselines(spec, run, log)) if spec.baseline.enabled else None
     if baselines is not None:
         report["baseline"] = baselines.to_dict()
     report["summary"] = summarise(scores, baselines).to_dict()
-    report["figures"] = _figures(report, scores, spec, out, baselines, log)
+    report["figures"] = timed("figures", lambda: _figures(report, scores, spec, out, baselines, log))
     report["seconds_report"] = time.monotonic() - t0
+    report["seconds_report_parts"] = parts
     report = _nan_to_none(report)
     (out / "report.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
     (out / "report.md").write_text(_markdown(report, spec, spec.ids))
@@ -124,10 +134,9 @@ def _figures(report: dict, scores: RunScores, spec: ScenarioSpec, out: Path, bas
 
 def _cross(run: SwarmRun, spec: ScenarioSpec, log: Callable[[str], None]) -> dict:
     """report.json's "cross": agent.evaluation.cross on the robots' final checkpoints."""
-    from agent.checkpoint import load_robot
     from agent.evaluation.cross import score_cross
 
-    setups = {i: load_robot(run.run_dirs[i], run.data_dir(i)) for i in run.ids if run.folder(i).checkpoint.exists()}
+    setups = {i: run.load_setup(i) for i in run.ids if run.folder(i).checkpoint.exists()}
     log(f"robots {sorted(setups)} on each other's own held-out frames, through their estimated poses")
     return score_cross({i: s.trainer for i, s in setups.items()}, {i: s.holdout for i, s in setups.items()},
                        with_ssim=spec.report.ssim, run_dirs=run.run_dirs).to_dict()
@@ -252,9 +261,12 @@ def _md_header(report: dict, spec: ScenarioSpec) -> list[str]:
     if spec.description:
         lines += [spec.description, ""]
     sp = report.get("split") or {}
+    parts = report.get("seconds_report_parts") or {}
     lines += [
         f"- outcome: **{'completed' if report['ok'] else 'FAILED'}** ({report['reason']}), "
-        f"{_f(report['seconds_run'], '.0f')} s, mode `{report['mode']}`",
+        f"{_f(report['seconds_run'], '.0f')} s, mode `{report['mode']}`; this report "
+        f"{_f(report.get('seconds_report'), '.0f')} s ("
+        + ", ".join(f"{k} {_f(v, '.0f')} s" for k, v in parts.items()) + ")",
         f"- data: `{spec.dataset}` at {sp.get('resolution')}"
         + (f" (robots' images at {sp['robot_resolution']})" if sp.get("robot_resolution") not in (None, sp.get("resolution")) else "")
         + f", {spec.robots} robots, mean overlap "
