@@ -482,10 +482,12 @@ class RobotTrainer:
 
     @torch.no_grad()
     def evaluate(self, views: Views, frame: Literal["local", "shared"] = "local", background: float = 1.0,
-                 with_ssim: bool = True, appearance: Tensor | None = None) -> dict[str, list[float]]:
+                 with_ssim: bool = True, appearance: Tensor | None = None,
+                 renders: list | None = None) -> dict[str, list[float]]:
         """PSNR/SSIM on views given in this robot's local frame (via T_i) or already in frame g.
 
-        appearance: [M, 12] per view (e.g. :meth:`appearance_for`); None: the field's own colour."""
+        appearance: [M, 12] per view (e.g. :meth:`appearance_for`); None: the field's own colour.
+        renders: a list to append each view's render to ([H, W, 3] on the CPU), for who shows them."""
         c2w = views.c2w.to(self.device).float()
         if frame == "local":
             c2w = transform_c2w(self.pose.matrix(), c2w)
@@ -497,6 +499,8 @@ class RobotTrainer:
             out["psnr"].append(psnr(pred, gt[i]))
             if with_ssim:
                 out["ssim"].append(ssim(pred, gt[i]))
+            if renders is not None:
+                renders.append(pred.cpu())
         return out
 
     @torch.no_grad()

@@ -20,6 +20,7 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
+import numpy as np
 import torch
 
 from agent.data.folder import read_scene
@@ -74,9 +75,10 @@ def train_baseline(
 
 
 @torch.no_grad()
-def evaluate_heldout(run: BaselineRun, views: Views, with_ssim: bool = True) -> dict[str, list[float]]:
+def evaluate_heldout(run: BaselineRun, views: Views, with_ssim: bool = True,
+                     renders: list | None = None) -> dict[str, list[float]]:
     """PSNR/SSIM (white background) on the held-out views, in the world frame."""
-    return run.trainer.evaluate(views.subset(run.test_indices), frame="local", with_ssim=with_ssim)
+    return run.trainer.evaluate(views.subset(run.test_indices), frame="local", with_ssim=with_ssim, renders=renders)
 
 
 @dataclass
@@ -87,10 +89,14 @@ class CentralisedScores:
     ssim: float | None
     seconds: float
     views: int  # held-out views scored
-    trainer: RobotTrainer = field(repr=False)  # for renders; not part of the scores
+    renders: np.ndarray | None = field(default=None, repr=False)  # [V, H, W, 3] uint8: its render of each view
 
     def to_dict(self) -> dict:
         return {"psnr": self.psnr, "ssim": self.ssim, "seconds": self.seconds, "views": self.views}
+
+
+def _uint8(renders: list) -> np.ndarray:
+    return np.stack([np.round(np.clip(r.numpy(), 0, 1) * 255).astype(np.uint8) for r in renders])
 
 
 @dataclass
@@ -132,9 +138,10 @@ def train_centralised(dataset: str, width: int | None, training: SwarmTrainingCo
     cfg = replace(training.train, total_steps=steps, seed=training.seed, init_seed=training.seed,
                   cameras=replace(training.train.cameras, enabled=False))
     run = train_baseline(views, cfg, test_every)
-    scores = evaluate_heldout(run, views, with_ssim=with_ssim)
+    renders: list = []
+    scores = evaluate_heldout(run, views, with_ssim=with_ssim, renders=renders)
     return CentralisedScores(psnr=finite_mean(scores["psnr"]), ssim=finite_mean(scores["ssim"]),
-                             seconds=time.monotonic() - t, views=len(scores["psnr"]), trainer=run.trainer)
+                             seconds=time.monotonic() - t, views=len(scores["psnr"]), renders=_uint8(renders))
 
 
 def train_centralised_on_robots(run: SwarmRun, training: SwarmTrainingConfig, steps: int,
@@ -157,9 +164,10 @@ def train_centralised_on_robots(run: SwarmRun, training: SwarmTrainingConfig, st
     center, half, _ = estimate_scene_box(views, cfg.field.unbounded)
     trainer = RobotTrainer(views, replace(cfg, pose=replace(cfg.pose, mode="fixed")), box_from_center(center, half))
     trainer.train(steps)
-    scores = trainer.evaluate(evalset.views, frame="local", with_ssim=with_ssim)
+    renders: list = []
+    scores = trainer.evaluate(evalset.views, frame="local", with_ssim=with_ssim, renders=renders)
     return CentralisedScores(psnr=finite_mean(scores["psnr"]), ssim=finite_mean(scores["ssim"]),
-                             seconds=time.monotonic() - t, views=len(scores["psnr"]), trainer=trainer)
+                             seconds=time.monotonic() - t, views=len(scores["psnr"]), renders=_uint8(renders))
 
 
 def train_alone(run: SwarmRun, robot_id: int, training: SwarmTrainingConfig, steps: int,

@@ -115,8 +115,10 @@ def plot_convergence(report: dict, ids: list[int], path: Path, show_pose: bool) 
     return drawn
 
 
-def render_sheet(finals: dict, evalset, spec: ScenarioSpec, path: Path, baseline_trainer=None) -> None:
-    """Rows: ground truth, [centralised], each robot (its final model, in the shared frame); columns: views."""
+def render_sheet(finals: dict, evalset, spec: ScenarioSpec, path: Path, baseline_renders=None) -> None:
+    """Rows: ground truth, [centralised], each robot (its final model, in the shared frame); columns: views.
+
+    baseline_renders: [V, H, W, 3] uint8, the centralised model's render of every held-out view."""
     plt = _pyplot()
     import torch
 
@@ -130,8 +132,8 @@ def render_sheet(finals: dict, evalset, spec: ScenarioSpec, path: Path, baseline
     w, h = evalset.views.width, evalset.views.height
     rows: list[tuple[str, list]] = [("truth", [gt[j].numpy() for j in idx])]
     with torch.no_grad():
-        if baseline_trainer is not None:
-            rows.append(("centralised", [baseline_trainer.render(evalset.views.c2w[j], evalset.views.intrinsics[j], w, h)["rgb"].cpu().numpy() for j in idx]))
+        if baseline_renders is not None:
+            rows.append(("centralised", [baseline_renders[j] / 255.0 for j in idx]))
         for i in sorted(finals):
             rows.append((f"robot {i}", [finals[i].render(cams[j], evalset.views.intrinsics[j], w, h)["rgb"].cpu().numpy() for j in idx]))
     fig, axes = plt.subplots(len(rows), len(idx), figsize=(2.2 * len(idx), 2.2 * len(rows)), squeeze=False)

@@ -101,9 +101,10 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
     report = _report_doc(spec, run_doc, scores, telemetry)
     if spec.training.own_holdout_every > 0:  # no truth needed: every robot on every robot's own held-out frames
         report["cross"] = timed("cross", lambda: _cross(run, spec, log))
-    baselines = timed("baselines", lambda: _baselines(spec, run, log)) if spec.baseline.enabled else None
-    if baselines is not None:
-        report["baseline"] = baselines.to_dict()
+    baselines = None
+    if spec.baseline.enabled:
+        baselines, reused = timed("baselines", lambda: _baselines(spec, run, log))
+        report["baseline"] = {**baselines.to_dict(), "reused": reused}
     report["summary"] = summarise(scores, baselines).to_dict()
     report["figures"] = timed("figures", lambda: _figures(report, scores, spec, out, baselines, log))
     report["seconds_report"] = time.monotonic() - t0
@@ -122,7 +123,7 @@ def _figures(report: dict, scores: RunScores, spec: ScenarioSpec, out: Path, bas
     doc = {"poses_known": known,
            "convergence": plot_convergence(report, spec.ids, out / "convergence.png", show_pose=not known)}
     render_sheet(scores.finals, scores.evalset, spec, out / "renders.png",
-                 baselines.centralised.trainer if baselines is not None else None)
+                 baselines.centralised.renders if baselines is not None else None)
     if spec.report.orbit_frames and scores.finals:
         ref = spec.reference_id if spec.reference_id in scores.finals else min(scores.finals)
         models = scores.finals if spec.report.orbit_all_robots else {ref: scores.finals[ref]}
@@ -142,11 +143,26 @@ def _cross(run: SwarmRun, spec: ScenarioSpec, log: Callable[[str], None]) -> dic
                        with_ssim=spec.report.ssim, run_dirs=run.run_dirs).to_dict()
 
 
-def _baselines(spec: ScenarioSpec, run: SwarmRun, echo: Callable[[str], None]) -> Baselines:
-    return run_baselines(run, dataset=spec.resolved_dataset(), width=spec.width, training=spec.training,
-                         test_every=spec.split.test_every, steps=spec.baseline.steps or spec.training.total_steps,
-                         alone=spec.baseline.alone, with_ssim=spec.report.ssim, echo=echo,
-                         on_robots_frames=spec.record.enabled)
+def _baselines(spec: ScenarioSpec, run: SwarmRun, echo: Callable[[str], None]) -> tuple[Baselines, bool]:
+    """The baselines, from the cache when the same inputs and code trained them before; and whether they were."""
+    from agent.evaluation.baseline_cache import baseline_key, dataset_fingerprint, load_cached, store_cached
+    from cli.config import to_dict
+
+    steps = spec.baseline.steps or spec.training.total_steps
+    split = {name: (run.split_dir / name).read_text() for name in ("split.json", "truth.json")
+             if (run.split_dir / name).is_file()}
+    key = baseline_key({"dataset": dataset_fingerprint(spec.resolved_dataset()), "width": spec.width,
+                        "training": to_dict(spec.training), "split": split, "steps": steps,
+                        "alone": spec.baseline.alone, "ssim": spec.report.ssim, "robots": spec.ids,
+                        "record": to_dict(spec.record) if spec.record.enabled else None})
+    if spec.baseline.reuse and (cached := load_cached(key)) is not None:
+        echo(f"baseline: the same models on the same data and code were trained before: reused (cache {key})")
+        return cached, True
+    baselines = run_baselines(run, dataset=spec.resolved_dataset(), width=spec.width, training=spec.training,
+                              test_every=spec.split.test_every, steps=steps, alone=spec.baseline.alone,
+                              with_ssim=spec.report.ssim, echo=echo, on_robots_frames=spec.record.enabled)
+    store_cached(key, baselines)
+    return baselines, False
 
 
 # --------------------------------------------------------------------------------------------
@@ -391,7 +407,9 @@ def _md_comparison(report: dict, spec: ScenarioSpec, ids: list[int]) -> list[str
              f"Centralised model ({'the frames the robots kept' if spec.record.enabled else 'all views'}, true poses, "
              f"{b['steps']} steps): PSNR **{_f(b['centralised']['psnr'])}** dB, "
              f"SSIM {_f(b['centralised']['ssim'], '.3f')}; swarm mean {_f(s['mean_psnr'])} dB "
-             f"(gap {_f(s.get('gap_to_centralised_db'))} dB).", ""]
+             f"(gap {_f(s.get('gap_to_centralised_db'))} dB)."
+             + (" The baselines were trained before on the same data, settings and code, and reused." if b.get("reused")
+                else ""), ""]
     if "alone" not in b:
         return lines
     lines += ["| robot | swarm PSNR all | alone PSNR all | swarm others-only | alone others-only | gain others-only (dB) |",

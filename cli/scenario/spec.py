@@ -208,6 +208,8 @@ class BaselineSpec:
     enabled: bool = False  # the centralised model on every robot's views, true poses
     alone: bool = True  # with enabled: also each robot alone on its own views (true pose, no consensus)
     steps: int | None = None  # default: the swarm's total_steps (rounds * steps_per_round)
+    # reuse baselines trained before on the same data, settings and code (agent.evaluation.baseline_cache)
+    reuse: bool = True
 
 
 @dataclass
