@@ -178,7 +178,7 @@ class Daemon:
         self._telemetry = JsonLines(self.folder.telemetry)
         box_known = box_from_shared is not None
         if not box_known:  # a provisional box from our own views (the right one if we are the reference)
-            center, half_size, _ = estimate_scene_box(views, training.train.field.unbounded)
+            center, half_size, _ = estimate_scene_box(views, training.train.field.unbounded, cameras_elsewhere=True)
             box_from_shared = box_from_center(center, half_size)
         elif (mismatch := field_box_mismatch(views, training.train.field.unbounded)) is not None:
             self.report.warn(mismatch)  # the split sized the box for the field the images call for

@@ -76,7 +76,8 @@ DEPTH_BOX_PADDING = 0.2  # of the quantile bounds' largest extent
 CAMERA_BOX_MARGIN = 0.1  # a capture that shows its surroundings: the box reaches this far past its cameras
 
 
-def estimate_scene_box(views: Views, unbounded: bool | None = None) -> tuple[Tensor, float, str]:
+def estimate_scene_box(views: Views, unbounded: bool | None = None,
+                       cameras_elsewhere: bool = False) -> tuple[Tensor, float, str]:
     """The world box of the scene: (centre [3], half-size, where the object's box came from).
 
     unbounded: the field the box is for (``field.unbounded``); None: what the images call for
@@ -89,10 +90,15 @@ def estimate_scene_box(views: Views, unbounded: bool | None = None) -> tuple[Ten
     floaters in front of the lens (docs/results.md, the room). So, as nerfstudio and mip-NeRF 360
     put the cameras inside the uncontracted region, the box grows about its centre to hold every
     camera centre (plus ``CAMERA_BOX_MARGIN``).
+
+    cameras_elsewhere: other robots' cameras, which these views do not show, must fit too (the
+    reference derives the box for a swarm with no scene file): the box holds the sphere through the
+    farthest camera, so cameras as far from the centre in any direction are inside.
     """
     centre, half, source = _object_box(views)
     if views.shows_surroundings if unbounded is None else unbounded:
-        reach = (views.c2w[:, :3, 3].to(torch.float64) - centre.to(torch.float64)).abs().amax()
+        offsets = views.c2w[:, :3, 3].to(torch.float64) - centre.to(torch.float64)  # [M, 3]
+        reach = offsets.norm(dim=-1).amax() if cameras_elsewhere else offsets.abs().amax()
         half = max(half, float(reach) * (1 + CAMERA_BOX_MARGIN))
     return centre, half, source
 

@@ -131,3 +131,26 @@ def test_spec_options_and_bad_values():
         parse_procedural_spec("procedural:room=yes")
     with pytest.raises(DataError, match="cannot be inverted"):
         ProceduralConfig(k1=-2.0)
+
+
+def test_a_box_derived_for_unseen_robots_holds_their_cameras_wherever_they_stand():
+    import math
+
+    import torch
+
+    from agent.data.capture import estimate_scene_box
+    from agent.data.views import Views
+    from agent.geometry import look_at
+
+    def ring(azimuths_deg):  # RGB cameras at radius 4 round the origin, looking at it
+        eyes = torch.tensor([[4 * math.cos(math.radians(a)), 4 * math.sin(math.radians(a)), 0.5] for a in azimuths_deg])
+        c2w = torch.stack([look_at(e, torch.zeros(3), torch.tensor([0.0, 0.0, 1.0])) for e in eyes]).float()
+        n = len(azimuths_deg)
+        return Views(torch.zeros(n, 8, 8, 3), c2w, torch.tensor([[8.0, 8.0, 4.0, 4.0]] * n), [str(a) for a in azimuths_deg])
+
+    own = ring([35, 40, 45, 50, 55])  # one robot's cameras, diagonal to the axes
+    others = ring([-5, 0, 5])  # another robot's, on an axis: as far from the centre, farther along x
+    centre, half, _ = estimate_scene_box(own, True)
+    centre2, shared, _ = estimate_scene_box(own, True, cameras_elsewhere=True)
+    reach = float((others.c2w[:, :3, 3].double() - centre).abs().amax())
+    assert torch.equal(centre, centre2) and half < reach <= shared  # outside the box of its own views, inside this one
