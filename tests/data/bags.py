@@ -1,7 +1,7 @@
 """Hand-made ROS 2 bags for the tests, written with ``rosbags``' writer: every message known.
 
-:func:`write_bag` writes a list of (topic, type, time, message) as a rosbag2; the builders make
-the messages a camera, its CameraInfo and tf give, so that each test can spoil exactly one thing.
+:func:`write_bag` writes a list of (topic, type, time, message) as a rosbag2 (the messages from
+:mod:`agent.data.ros.messages`), so that each test can spoil exactly one thing.
 """
 
 from __future__ import annotations
@@ -10,64 +10,21 @@ from pathlib import Path
 
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
 
-from agent.data.ros.tf import matrix_quaternion
+from agent.data.ros import messages as msg
 
-TS = get_typestore(Stores.ROS2_HUMBLE)
-T = TS.types
+TS = msg.typestore()
 T0 = 1_700_000_000.0
-
-
-def stamp(t: float):
-    ns = int(round(t * 1e9))
-    return T["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-
-
-def header(t: float, frame: str):
-    return T["std_msgs/msg/Header"](stamp=stamp(t), frame_id=frame)
-
-
-def image(t: float, pixels: np.ndarray, encoding: str, frame: str = "camera_optical", step: int | None = None,
-          bigendian: bool = False):
-    """``pixels``: uint8 [H, W, C] or uint16 [H, W] laid out as ``encoding`` says; ``step`` pads the rows."""
-    h, w = pixels.shape[:2]
-    rows = pixels.reshape(h, -1).view(np.uint8) if pixels.dtype == np.uint8 else (
-        pixels.astype(">u2" if bigendian else "<u2").reshape(h, -1).view(np.uint8))
-    step = step or rows.shape[1]
-    padded = np.zeros((h, step), np.uint8)
-    padded[:, :rows.shape[1]] = rows
-    return T["sensor_msgs/msg/Image"](header=header(t, frame), height=h, width=w, encoding=encoding,
-                                      is_bigendian=int(bigendian), step=step, data=padded.ravel())
-
-
-def compressed(t: float, data: bytes, fmt: str, frame: str = "camera_optical"):
-    return T["sensor_msgs/msg/CompressedImage"](header=header(t, frame), format=fmt,
-                                                data=np.frombuffer(data, np.uint8))
+stamp, header, transform, tf_message, image, compressed = (msg.stamp, msg.header, msg.transform, msg.tf_message,
+                                                          msg.image, msg.compressed)
 
 
 def camera_info(t: float, w: int, h: int, k: tuple[float, float, float, float] = (20.0, 20.0, 7.5, 5.5),
                 model: str = "plumb_bob", d: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0),
                 frame: str = "camera_optical"):
+    """A CameraInfo with ``k`` = (fx, fy, cx, cy) as ROS writes them (pixel centres at the index)."""
     fx, fy, cx, cy = k
-    km = np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1], dtype=np.float64)
-    return T["sensor_msgs/msg/CameraInfo"](
-        header=header(t, frame), height=h, width=w, distortion_model=model, d=np.array(d, dtype=np.float64), k=km,
-        r=np.eye(3).ravel(), p=np.concatenate([km[:3], [0], km[3:6], [0], km[6:], [0]]), binning_x=0, binning_y=0,
-        roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
-
-
-def transform(t: float, parent: str, child: str, m: np.ndarray):
-    q = matrix_quaternion(m)
-    return T["geometry_msgs/msg/TransformStamped"](
-        header=header(t, parent), child_frame_id=child,
-        transform=T["geometry_msgs/msg/Transform"](
-            translation=T["geometry_msgs/msg/Vector3"](x=float(m[0, 3]), y=float(m[1, 3]), z=float(m[2, 3])),
-            rotation=T["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))))
-
-
-def tf_message(*transforms):
-    return T["tf2_msgs/msg/TFMessage"](transforms=list(transforms))
+    return msg.camera_info(t, w, h, np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), frame, model, d)
 
 
 def pose_x(x: float, yaw_deg: float = 0.0) -> np.ndarray:
@@ -86,8 +43,8 @@ def write_bag(path: Path, messages: list[tuple[str, str, float, object]], storag
         conns = {}
         for topic, typ in list(dict.fromkeys([(m[0], m[1]) for m in messages])) + list(empty_topics):
             conns[topic] = w.add_connection(topic, typ, typestore=TS)
-        for topic, typ, t, msg in sorted(messages, key=lambda m: m[2]):
-            w.write(conns[topic], int(t * 1e9), TS.serialize_cdr(msg, typ))
+        for topic, _, t, message in sorted(messages, key=lambda m: m[2]):
+            w.write(conns[topic], int(t * 1e9), msg.serialize(message))
     return path
 
 

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from agent.camera import OPENCV_FROM_OPENGL, opencv_camera_matrix, pixel_to_opencv
+from agent.data.ros import messages as msg
 from agent.data.ros.tf import matrix_quaternion, quaternion_matrix, slerp
 from agent.data.views import Views
 
@@ -112,33 +113,15 @@ def bag_storage_file(bag_dir: str | Path) -> Path:
 def record_bag(views: Views, path: str | Path, t_odom_from_world: np.ndarray, cfg: RecordConfig | None = None) -> dict:
     """Write ``views`` (pinhole, in capture order) as a rosbag2 folder at ``path``; returns what was written."""
     from rosbags.rosbag2 import StoragePlugin, Writer
-    from rosbags.typesys import Stores, get_typestore
 
     cfg = cfg or RecordConfig()
-    ts = get_typestore(Stores.ROS2_HUMBLE)
-    T = ts.types
+    ts = msg.typestore()
     mount = mount_transform(cfg.mount_tilt_deg)
     base = _base_poses(views, np.asarray(t_odom_from_world, dtype=np.float64), mount)
     dt = 1.0 / cfg.image_rate_hz
     stamps = cfg.start_s + dt * np.arange(len(views))
     tf_dt = dt / cfg.tf_rate_factor
     tf_times = np.arange(stamps[0] - 2 * tf_dt, stamps[-1] + 2 * tf_dt, tf_dt) + 0.37 * tf_dt  # images fall between
-
-    def time_msg(t: float):
-        ns = int(round(t * 1e9))
-        return T["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-
-    def header(t: float, frame: str):
-        return T["std_msgs/msg/Header"](stamp=time_msg(t), frame_id=frame)
-
-    def transform(t: float, parent: str, child: str, m: np.ndarray):
-        q = matrix_quaternion(m)
-        return T["geometry_msgs/msg/TransformStamped"](
-            header=header(t, parent), child_frame_id=child,
-            transform=T["geometry_msgs/msg/Transform"](
-                translation=T["geometry_msgs/msg/Vector3"](x=float(m[0, 3]), y=float(m[1, 3]), z=float(m[2, 3])),
-                rotation=T["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))))
-
     k = views.intrinsics[0].tolist()
     maps = _distortion_maps(k, views.width, views.height, cfg.k1) if cfg.k1 else None
     compressed = cfg.encoding in ("jpeg", "png")
@@ -146,45 +129,37 @@ def record_bag(views: Views, path: str | Path, t_odom_from_world: np.ndarray, cf
     written = {"images": 0, "tf": 0}
     with Writer(Path(path), version=9, storage_plugin=plugin) as w:
         image_type = "sensor_msgs/msg/CompressedImage" if compressed else "sensor_msgs/msg/Image"
-        topic = cfg.image_topic + ("/compressed" if compressed else "")
-        c_img = w.add_connection(topic, image_type, typestore=ts)
+        c_img = w.add_connection(cfg.image_topic + ("/compressed" if compressed else ""), image_type, typestore=ts)
         c_info = w.add_connection(cfg.info_topic, "sensor_msgs/msg/CameraInfo", typestore=ts)
         c_tf = w.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=ts)
         c_static = w.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=ts)
-        static = T["tf2_msgs/msg/TFMessage"](transforms=[transform(stamps[0], cfg.base_frame, cfg.camera_frame, mount)])
-        w.write(c_static, int(tf_times[0] * 1e9), ts.serialize_cdr(static, "tf2_msgs/msg/TFMessage"))
+        static = msg.tf_message(msg.transform(stamps[0], cfg.base_frame, cfg.camera_frame, mount))
+        w.write(c_static, int(tf_times[0] * 1e9), msg.serialize(static))
         events = [(t, "tf", None) for t in tf_times] + [(t, "image", i) for i, t in enumerate(stamps)]
         for t, kind, i in sorted(events, key=lambda e: e[0]):
             if kind == "tf":
-                msg = T["tf2_msgs/msg/TFMessage"](transforms=[transform(t, cfg.fixed_frame, cfg.base_frame,
-                                                                        _interpolate(base, stamps, t, tf_dt))])
-                w.write(c_tf, int(t * 1e9), ts.serialize_cdr(msg, "tf2_msgs/msg/TFMessage"))
+                odom = msg.transform(t, cfg.fixed_frame, cfg.base_frame, _interpolate(base, stamps, t, tf_dt))
+                w.write(c_tf, int(t * 1e9), msg.serialize(msg.tf_message(odom)))
                 written["tf"] += 1
                 continue
             img = views.images[i].numpy()
             if maps is not None:
                 img = np.clip(cv2.remap(img, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), 0, 1)
-            hdr = header(t, cfg.camera_frame)
-            if compressed:
-                q, _ = _pixels(img, "rgba8" if img.shape[2] == 4 and cfg.encoding == "png" else "rgb8")
-                q = q[:, :, [2, 1, 0, 3][: q.shape[2]]]  # OpenCV writes BGR(A)
-                ok, buf = cv2.imencode(".jpg" if cfg.encoding == "jpeg" else ".png", q)
-                msg = T["sensor_msgs/msg/CompressedImage"](header=hdr, format=cfg.encoding,
-                                                           data=np.frombuffer(buf.tobytes(), np.uint8))
-            else:
-                q, enc = _pixels(img, cfg.encoding)
-                raw = q.tobytes()
-                msg = T["sensor_msgs/msg/Image"](header=hdr, height=q.shape[0], width=q.shape[1], encoding=enc,
-                                                 is_bigendian=0, step=len(raw) // q.shape[0],
-                                                 data=np.frombuffer(raw, np.uint8))
-            w.write(c_img, int(t * 1e9), ts.serialize_cdr(msg, image_type))
-            km = opencv_camera_matrix(k)
-            info = T["sensor_msgs/msg/CameraInfo"](
-                header=hdr, height=views.height, width=views.width, distortion_model="plumb_bob",
-                d=np.array([cfg.k1, 0.0, 0.0, 0.0, 0.0]), k=km.ravel(), r=np.eye(3).ravel(),
-                p=np.hstack([km, np.zeros((3, 1))]).ravel(), binning_x=0, binning_y=0,
-                roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
-            w.write(c_info, int(t * 1e9), ts.serialize_cdr(info, "sensor_msgs/msg/CameraInfo"))
+            w.write(c_img, int(t * 1e9), msg.serialize(_image_message(img, t, cfg)))
+            info = msg.camera_info(t, views.width, views.height, opencv_camera_matrix(k), cfg.camera_frame,
+                                   d=(cfg.k1, 0.0, 0.0, 0.0, 0.0))
+            w.write(c_info, int(t * 1e9), msg.serialize(info))
             written["images"] += 1
     return {**written, "stamps_s": stamps.tolist(), "T_odom_from_world": np.asarray(t_odom_from_world).tolist(),
             "T_base_from_optical": mount.tolist()}
+
+
+def _image_message(img: np.ndarray, t: float, cfg: RecordConfig):
+    """An image [H, W, 3|4] float as the configured encoding: raw, or jpeg/png compressed (png keeps alpha)."""
+    if cfg.encoding in ("jpeg", "png"):
+        q, _ = _pixels(img, "rgba8" if img.shape[2] == 4 and cfg.encoding == "png" else "rgb8")
+        q = q[:, :, [2, 1, 0, 3][: q.shape[2]]]  # OpenCV writes BGR(A)
+        _, buf = cv2.imencode(".jpg" if cfg.encoding == "jpeg" else ".png", q)
+        return msg.compressed(t, buf.tobytes(), cfg.encoding, cfg.camera_frame)
+    q, enc = _pixels(img, cfg.encoding)
+    return msg.image(t, q, enc, cfg.camera_frame)
