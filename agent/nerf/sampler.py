@@ -92,6 +92,13 @@ def exclusive_segment_cumsum(values: Tensor, ray_index: Tensor, num_rays: int) -
 
 def _uniform(t_near: Tensor, t_far: Tensor, dt: float, jitter: Tensor | None) -> tuple[Tensor, Tensor]:
     """Steps of ``dt`` through [t_near, t_far) per ray -> (ray_index [K], t_mid [K])."""
+    ray_index, t_mid, _ = _uniform_ranked(t_near, t_far, dt, jitter)
+    return ray_index, t_mid
+
+
+def _uniform_ranked(t_near: Tensor, t_far: Tensor, dt: float, jitter: Tensor | None
+                    ) -> tuple[Tensor, Tensor, Tensor]:
+    """As :func:`_uniform`, with each sample's rank within its ray ([K] int64)."""
     steps = torch.ceil((t_far - t_near) / dt).clamp(min=0).to(torch.int64)  # [R]
     total = int(steps.sum())
     ray_index = torch.repeat_interleave(torch.arange(t_near.shape[0], device=t_near.device), steps)  # [K]
@@ -100,11 +107,12 @@ def _uniform(t_near: Tensor, t_far: Tensor, dt: float, jitter: Tensor | None) ->
     offset = 0.5 if jitter is None else jitter[ray_index]
     t_mid = t_near[ray_index] + (k + offset) * dt
     keep = t_mid < t_far[ray_index]
-    return ray_index[keep], t_mid[keep]
+    return ray_index[keep], t_mid[keep], k[keep]
 
 
-def _cone(a: Tensor, b: Tensor, step: float, cone: float, jitter: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
-    """Steps of ``max(step, cone * t)`` through [a, b) per ray -> (ray_index, t_mid, dt), each [K].
+def _cone(a: Tensor, b: Tensor, step: float, cone: float, jitter: Tensor | None
+          ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Steps of ``max(step, cone * t)`` through [a, b) per ray -> (ray_index, t_mid, dt, rank in ray), each [K].
 
     Uniform below ``t_c = step / cone``, then geometric (``t_{k+1} = t_k (1 + cone)``), so the
     count per ray has a closed form and the samples stay packed without a loop over steps.
@@ -127,7 +135,7 @@ def _cone(a: Tensor, b: Tensor, step: float, cone: float, jitter: Tensor | None)
     t_mid = torch.where(is_uni, a[ray_index] + (k + j) * step, edge * torch.pow(ratio, j))
     dt = torch.where(is_uni, torch.full_like(t_mid, step), edge * cone)
     keep = t_mid < b[ray_index]
-    return ray_index[keep], t_mid[keep], dt[keep]
+    return ray_index[keep], t_mid[keep], dt[keep], k.to(torch.int64)[keep]
 
 
 def _candidates_unbounded(origins: Tensor, directions: Tensor, cfg: MarchConfig,
@@ -140,15 +148,23 @@ def _candidates_unbounded(origins: Tensor, directions: Tensor, cfg: MarchConfig,
     box_out = torch.where(hits, torch.maximum(t_far, near), near)
     far = torch.full_like(t_near, cfg.far)
     parts = [_cone(near, box_in, cfg.step_size, cfg.cone_angle, jitter)]
-    ri, tm = _uniform(box_in, box_out, cfg.step_size, jitter)
-    parts.append((ri, tm, torch.full_like(tm, cfg.step_size)))
+    ri, tm, rank = _uniform_ranked(box_in, box_out, cfg.step_size, jitter)
+    parts.append((ri, tm, torch.full_like(tm, cfg.step_size), rank))
     parts.append(_cone(box_out, far, cfg.step_size, cfg.cone_angle, jitter))
-    ray_index = torch.cat([p[0] for p in parts])
-    t_mid = torch.cat([p[1] for p in parts])
-    dt = torch.cat([p[2] for p in parts])
-    order = torch.sort(t_mid, stable=True).indices
-    order = order[torch.sort(ray_index[order], stable=True).indices]  # by ray, then by distance
-    return ray_index[order], t_mid[order], dt[order]
+    # The three stretches follow each other along every ray: each sample's place in the packed
+    # layout is its ray's start, the samples of the stretches before it on that ray, and its rank.
+    num_rays = origins.shape[0]
+    counts = torch.stack([torch.bincount(p[0], minlength=num_rays) for p in parts])  # [3, R]
+    before = torch.cumsum(counts, 0) - counts  # [3, R] samples of the earlier stretches, per ray
+    ray_start = torch.cumsum(counts.sum(0), 0) - counts.sum(0)  # [R]
+    total = int(counts.sum())
+    ray_index = torch.empty(total, dtype=torch.int64, device=origins.device)
+    t_mid = torch.empty(total, dtype=origins.dtype, device=origins.device)
+    dt = torch.empty(total, dtype=origins.dtype, device=origins.device)
+    for part, (ri, tm, d, rank) in enumerate(parts):
+        dest = ray_start[ri] + before[part][ri] + rank  # the ranks run 0.. within a stretch (candidates past b dropped last)
+        ray_index[dest], t_mid[dest], dt[dest] = ri, tm, d
+    return ray_index, t_mid, dt
 
 
 @torch.no_grad()

@@ -25,12 +25,12 @@ def test_contraction_keeps_the_box_linear_and_squeezes_the_rest_into_the_cube():
 def test_cone_steps_tile_the_interval_without_gaps():
     a = torch.tensor([0.0, 0.3, 5.0, 2.0])
     b = torch.tensor([40.0, 3.1, 900.0, 1.0])  # the last interval is empty
-    ray, t_mid, dt = _cone(a, b, step=0.05, cone=1 / 32, jitter=None)
+    ray, t_mid, dt, rank = _cone(a, b, step=0.05, cone=1 / 32, jitter=None)
     for r in range(3):
         sel = ray == r
         covered = float(dt[sel].sum())
         assert abs(covered - float(b[r] - a[r])) <= float(dt[sel].max()), (r, covered)
-        assert bool((t_mid[sel][1:] > t_mid[sel][:-1]).all())
+        assert bool((t_mid[sel][1:] > t_mid[sel][:-1]).all()) and torch.equal(rank[sel], torch.arange(int(sel.sum())))
         # steps never shrink below the minimum and grow about with the distance
         assert float(dt[sel].min()) >= 0.05 - 1e-6 and float((dt[sel] / t_mid[sel]).max()) <= 1 / 32 + 0.05 / float(t_mid[sel].min())
     assert int((ray == 3).sum()) == 0
