@@ -186,7 +186,7 @@ def test_compose_runs_robots_as_the_host_user_with_run_dirs_made_in_advance(tmp_
     path = write_compose(spec, tmp_path / "out" / "docker-compose.yml", with_data=True)
     doc = compose_document(spec, path.parent)
     assert all(svc["user"] == "${DINERF_UID:-1000}:${DINERF_GID:-1000}" for svc in doc["services"].values())
-    assert all((path.parent / f"runs/robot{i}").is_dir() for i in spec.ids)
+    assert all((path.parent / f"robots/{i}").is_dir() for i in spec.ids)  # the layout of a `scenario run`
 
 
 def test_shipped_compose_files_are_current():
