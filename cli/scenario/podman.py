@@ -17,6 +17,9 @@ What compose cannot say, the runner does from outside (and ``run.json``/the repo
   ``tbf`` on kernels without ``sch_netem``). A container's namespace is new at every start, so
   what the runner applied is applied again after a restart.
 
+The image's HEALTHCHECK is run once per start of a robot (``podman healthcheck run``, recorded
+in ``run.json``): without systemd podman cannot time it, so containers are made without the timer.
+
 Containers need a rootful podman (bridges with static addresses, ``tc`` in their namespaces),
 ``podman-compose`` >= 1.1 (1.0.x gives one ``--ip`` for all networks, containers/podman-compose
 #817; tested with 1.6.0) and, where ``crun`` cannot set the default rlimits (as on this project's
@@ -187,9 +190,14 @@ class ComposeLab:
     def create(self) -> "ComposeLab":
         from cli.scenario.compose import compose_document, link_addresses, robot_command, write_compose
 
+        from cli.scenario.netns import netem_available
+
         reason = compose_unavailable_reason()
         if reason:
             raise PodmanError(reason)
+        if any(f.delay_ms or f.loss for f in self.spec.faults.netem) and not netem_available():
+            raise PodmanError("this kernel has no sch_netem (tc ... netem fails): delay and loss on container links "
+                              "need it; --mode netns emulates them with its relay (a rate cap alone works here, with tbf)")
         self._tool, _ = compose_tool()
         write_compose(self.spec, self.compose_file, image=self.image)
         doc = compose_document(self.spec, self.out, image=self.image)
@@ -308,10 +316,16 @@ class ComposeLab:
         if pid is None:
             return subprocess.CompletedProcess(argv, 0, "", "")  # not running: applied at its next start
         try:
-            return subprocess.run(["nsenter", "--target", str(pid), "--net", *argv], capture_output=True, text=True,
-                                  timeout=20)
+            p = subprocess.run(["nsenter", "--target", str(pid), "--net", *argv], capture_output=True, text=True,
+                               timeout=20)
         except FileNotFoundError as e:
             raise PodmanError(f"{e.filename}: command not found (util-linux's nsenter, iproute2's ip and tc)") from None
+        if argv[0] == "tc" or "set" in argv:  # what changed a link, for the operator
+            with (self.out / "logs" / "links.log").open("a") as log:
+                said = " ".join((p.stderr or p.stdout).split())
+                log.write(f"{time.strftime('%H:%M:%S')} robot {robot}: {' '.join(argv)}: "
+                          f"{'ok' if p.returncode == 0 else 'failed'}{': ' + said if said else ''}\n")
+        return p
 
     def _device(self, robot: int, other: int) -> str | None:
         """The interface of ``robot``'s container on its link to ``other`` (by its address there)."""

@@ -499,7 +499,7 @@ class ScenarioRunner:
             with contextlib.suppress(subprocess.TimeoutExpired):
                 out, err = proc.communicate(timeout=30 if wait else 0.001)
                 self._health.remove(item)
-                status = out.strip() or " ".join(err.split())[-200:]
+                status = out.strip() or " ".join(err.split())[-200:] or ("healthy" if proc.returncode == 0 else "unhealthy")
                 self._event("health", robot=robot, start=start, healthy=proc.returncode == 0, status=status)
 
     def _write_run_json(self, ok: bool, reason: str, seconds: float) -> None:

@@ -125,6 +125,7 @@ def _run(tmp_path: Path, name: str, *args: str) -> tuple[dict, Path]:
 
 
 def _rounds(out: Path, robot: int) -> list[int]:
+    """The rounds robot's telemetry logged."""
     lines = (out / "robots" / str(robot) / "telemetry.jsonl").read_text().splitlines()
     return sorted({json.loads(l)["round"] for l in lines if l.strip()})
 
@@ -150,12 +151,15 @@ def test_quickstart_as_containers(tmp_path):
 @pytest.mark.slow
 @needs_podman
 def test_kill_and_restart_a_robot_container(tmp_path):
-    doc, out = _run(tmp_path, "fault-kill-restart", "--set", "training.rounds=4", "--no-report",
-                    "--set", "faults.kill=[{robot=3,round=1}]", "--set", "faults.restart=[{robot=3,round=2}]")
+    doc, out = _run(tmp_path, "fault-kill-restart", "--set", "training.rounds=5", "--set", "training.steps_per_round=10",
+                    "--no-report", "--set", "faults.kill=[{robot=3,round=1}]", "--set", "faults.restart=[{robot=3,round=2}]")
     robot3 = doc["robots"]["3"]
     assert robot3["starts"] == 2 and robot3["exit_codes"][0] == 137 and robot3["state"] == "done"  # SIGKILLed, back
     faults = {e["fault"]: e for e in doc["events"] if e["event"] == "fault"}
-    assert faults["kill"]["how"] == "runner: podman kill (SIGKILL)" and faults["kill"]["robot_rounds"]["3"] < 4
+    assert faults["kill"]["how"] == "runner: podman kill (SIGKILL)" and faults["kill"]["robot_rounds"]["3"] < 5
     assert faults["restart"]["how"].startswith("runner: podman start")
-    for i in (1, 2, 3, 4):
-        assert doc["robots"][str(i)]["state"] == "done" and _rounds(out, i)[-1] == 4
+    for i in (1, 2, 3, 4):  # every robot to the last round (robot 3 joins the swarm's round when back)
+        done = json.loads((out / "robots" / str(i) / "done.json").read_text())
+        assert doc["robots"][str(i)]["state"] == "done" and done["rounds"] == 5
+    log = (out / "logs" / "robot3.log").read_text()
+    assert "resumed from /run/robot/checkpoint.safetensors" in log  # the same run dir, in the same container
