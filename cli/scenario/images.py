@@ -165,6 +165,7 @@ def build_image(tag: str, base: str = "auto", torch_spec: str | None = None, tor
     torch_spec = torch_spec or TORCH_SPEC
     if torch_index is None:
         torch_index = _torch_index(paths)
+    old = podman("image", "inspect", "--format", "{{.Id}}", tag, check=False).stdout.strip()
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="dinerf-pip-") as tmp:
         (Path(tmp) / "pip.conf").write_text(conf)
@@ -183,6 +184,8 @@ def build_image(tag: str, base: str = "auto", torch_spec: str | None = None, tor
         tail = _tail(log) if log else ""
         raise PodmanError(f"podman build of {tag} failed (exit {p.returncode}){': ' + tail if tail else ''}")
     seconds = time.monotonic() - t0
+    if old and old != podman("image", "inspect", "--format", "{{.Id}}", tag).stdout.strip():
+        podman("rmi", old, check=False)  # the previous build, untagged now (refused while a container uses it)
     echo(f"[image] {tag}: {image_size(tag) / 1e9:.2f} GB, built in {seconds:.0f} s")
     return seconds
 
