@@ -2,20 +2,41 @@
 #   docker build -t dinerf-agent .
 #   docker run --rm dinerf-agent --help
 #   docker run --rm dinerf-agent scenario list      (the scenarios ship inside the package)
-FROM python:3.11-slim
+# Without a registry (podman, a Debian base made by debootstrap, torch from pip's configured
+# index or find-links): `dinerf-agent scenario image`, which passes the build args below.
+ARG BASE_IMAGE=python:3.11-slim
+FROM ${BASE_IMAGE}
 
-ENV PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
+# torch: what to install and from which index. The CPU index by default (the default index would
+# bring the CUDA build, gigabytes larger); an empty TORCH_INDEX uses pip's own configuration.
+ARG TORCH_SPEC=torch==2.13.0
+ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu
 
-# The CPU build of torch first (the default index would bring the CUDA build, gigabytes larger).
-RUN pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu
+ENV PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    VIRTUAL_ENV=/opt/venv PATH=/opt/venv/bin:$PATH
+
+# iproute2: `tc` for the link-emulation services of the compose files (they run as root with
+# NET_ADMIN in a robot's network namespace; the robot itself never does).
+RUN apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends iproute2 \
+    && rm -rf /var/lib/apt/lists/*
+
+# A venv, so that the same steps work on python:3.11-slim and on a Debian base (whose system
+# Python refuses pip installs, PEP 668).
+RUN python3 -m venv /opt/venv && pip install "${TORCH_SPEC}" ${TORCH_INDEX:+--index-url "$TORCH_INDEX"}
 
 WORKDIR /opt/dinerf
-COPY pyproject.toml README.md* ./
+# The dependencies first, in their own layer (from pyproject.toml only, on empty packages), so
+# a code change rebuilds only the last, quick layer.
+COPY pyproject.toml ./
+RUN mkdir -p agent protocol cli scenarios && touch README.md agent/__init__.py protocol/__init__.py cli/__init__.py \
+        scenarios/__init__.py \
+    && pip install . && pip uninstall -y -q dinerf && rm -rf agent protocol cli scenarios build ./*.egg-info README.md
+COPY README.md* ./
 COPY agent ./agent
 COPY protocol ./protocol
 COPY cli ./cli
 COPY scenarios ./scenarios
-RUN pip install .
+RUN pip install --no-deps . && rm -rf build ./*.egg-info
 
 # A robot never needs root. Compose runs it as the host user (DINERF_UID/DINERF_GID) so that the
 # run dirs it writes through the bind mount belong to whoever started the swarm.

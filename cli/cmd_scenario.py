@@ -11,7 +11,7 @@ from cli.errors import UserError, friendly_errors
 from cli.main import app
 from cli.options import progress_listener
 
-scenario_app = typer.Typer(help="Named swarm experiments: run (loopback or network namespaces), report, compose.",
+scenario_app = typer.Typer(help="Named swarm experiments: run (loopback, network namespaces or containers), report, compose.",
                            no_args_is_help=True)
 app.add_typer(scenario_app, name="scenario")
 
@@ -63,7 +63,8 @@ def list_cmd() -> None:
 @friendly_errors
 def run_cmd(
     name: str = typer.Argument(..., help=SCENARIO_HELP),
-    mode: str = typer.Option(None, "--mode", help="local (loopback, any user) | netns (root: a namespace per robot). Default: the scenario's."),
+    mode: str = typer.Option(None, "--mode", help="local (loopback, any user) | netns (root: a namespace per robot) | "
+                             "compose (root: a podman container per robot, from the scenario's compose file). Default: the scenario's."),
     out: Path = typer.Option(None, "--out", help="Output folder (default: runs/scenarios/<name>/<time>)."),
     overrides: list[str] = typer.Option([], "--set", help="Override a scenario setting, e.g. --set training.rounds=4 (repeatable)."),
     report: bool = typer.Option(True, "--report/--no-report", help="Evaluate the run and write report.md/json + PNGs."),
@@ -72,6 +73,7 @@ def run_cmd(
     """Run a scenario: split the data, start one daemon per robot, apply the faults, write the report."""
     from cli.options import check_output_folder
     from cli.scenario.netns import NetnsError, netns_unavailable_reason
+    from cli.scenario.podman import PodmanError, compose_unavailable_reason
     from cli.scenario.report import build_report
     from cli.scenario.runner import ScenarioRunner
 
@@ -80,6 +82,8 @@ def run_cmd(
     spec.check_mode(mode)
     if mode == "netns" and (reason := netns_unavailable_reason()):
         raise UserError(f"--mode netns: {reason}")
+    if mode == "compose" and (reason := compose_unavailable_reason()):
+        raise UserError(f"--mode compose: {reason}")
     if spec.needs_files():
         spec.resolved_dataset()  # a missing dataset is an error now, not after the set-up
     out = out or Path("runs") / "scenarios" / spec.name / time.strftime("%Y%m%d-%H%M%S")
@@ -94,9 +98,17 @@ def run_cmd(
         shutil.rmtree(out)
     typer.echo(f"[scenario] {spec.name} ({mode}) -> {out}")
     try:
+        if mode == "compose":  # the image of this checkout (from the layer cache when nothing changed)
+            from cli.scenario.compose import IMAGE
+            from cli.scenario.images import build_image
+
+            (out / "logs").mkdir(parents=True, exist_ok=True)
+            build_image(IMAGE, log=out / "logs" / "image.log", echo=typer.echo)
         outcome = ScenarioRunner(spec, out, mode=mode, echo=typer.echo).run()
     except NetnsError as e:  # the namespaces are already gone: the runner cleans up before re-raising
         raise UserError(f"network set-up failed: {e}") from None
+    except PodmanError as e:  # so are the containers and their networks
+        raise UserError(f"--mode compose: {e}") from None
     typer.echo(f"[scenario] {'completed' if outcome.ok else 'FAILED'}: {outcome.reason} ({outcome.seconds:.0f} s)")
     if report and (out / "data" / "truth.json").is_file():
         with progress_listener():
@@ -157,16 +169,49 @@ def compose_cmd(
                + ("" if data else f"; write the robot folders with --data (into {path.parent / 'data'})"))
 
 
+@scenario_app.command("image")
+@friendly_errors
+def image_cmd(
+    base: str = typer.Option("auto", "--base", help="The base image: a registry's (python:3.11-slim), `debootstrap` "
+                             "(a Debian base made here once, for machines that reach no registry), or auto: the "
+                             "registry's if it is here, else debootstrap; or the previous build's."),
+    torch_spec: str = typer.Option(None, "--torch-spec", help="What pip installs as torch (default torch==2.13.0)."),
+    torch_index: str = typer.Option(None, "--torch-index", help="The index for torch; '' for pip's configuration "
+                                    "(default: the CPU index, or '' when the host's pip has a torch wheel at hand)."),
+    mirror: str = typer.Option("http://deb.debian.org/debian", "--mirror", help="The Debian mirror of debootstrap."),
+) -> None:
+    """Build the robot image (dinerf-agent:latest) with podman, for `scenario run --mode compose`."""
+    import shutil
+
+    from cli.scenario.compose import IMAGE
+    from cli.scenario.images import build_image
+    from cli.scenario.podman import PodmanError
+
+    if shutil.which("podman") is None:
+        raise UserError("podman is not installed (Debian: apt-get install podman)")
+    try:
+        build_image(IMAGE, base, torch_spec, torch_index, echo=typer.echo, mirror=mirror)
+    except PodmanError as e:
+        raise UserError(str(e)) from None
+
+
 @scenario_app.command("cleanup")
 @friendly_errors
 def cleanup_cmd(
     prefix: str = typer.Option("dinerf", help="Namespace prefix of scenario runs."),
-    force: bool = typer.Option(False, help="Also remove namespaces of runs whose process is still alive."),
+    force: bool = typer.Option(False, help="Also remove namespaces and containers of runs whose process is still alive."),
 ) -> None:
-    """Remove network namespaces left by crashed scenario runs (root)."""
+    """Remove network namespaces and compose containers left by crashed scenario runs (root)."""
+    import os
+    import shutil
+
     from cli.scenario.netns import cleanup_stale, netns_unavailable_reason
+    from cli.scenario.podman import cleanup_stale_projects
 
     if reason := netns_unavailable_reason():
         raise UserError(reason)
     removed = cleanup_stale(prefix, force=force)
     typer.echo(f"removed {len(removed)} namespace(s)" + (": " + ", ".join(removed) if removed else ""))
+    if shutil.which("podman") and os.geteuid() == 0:
+        projects = cleanup_stale_projects(force=force)
+        typer.echo(f"removed {len(projects)} compose run(s)" + (": " + ", ".join(projects) if projects else ""))

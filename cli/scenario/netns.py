@@ -59,6 +59,7 @@ __all__ = [
     "list_namespaces",
     "signals_raise",
     "run_ip",
+    "netem_args",
 ]
 
 
@@ -123,6 +124,12 @@ def netem_available() -> bool:
         finally:
             run_ip("netns", "del", name, check=False)
     return _NETEM
+
+
+def netem_args(delay_ms: float, jitter_ms: float = 0.0, loss: float = 0.0, rate_mbit: float = 0.0) -> list[str]:
+    """``tc qdisc ... netem`` arguments (with a rate: netem's own, the delay after the wire)."""
+    args = ["delay", f"{delay_ms}ms"] + ([f"{jitter_ms}ms"] if jitter_ms else []) + (["loss", f"{100 * loss}%"] if loss else [])
+    return args + (["rate", f"{rate_mbit}mbit"] if rate_mbit else [])
 
 
 def list_namespaces() -> list[str]:
@@ -402,9 +409,7 @@ class NetnsLab:
                 if clean:
                     _run(tc + ["del", "dev", dev, "root"], check=False)
                 else:
-                    args = ["delay", f"{delay_ms}ms"] + ([f"{jitter_ms}ms"] if jitter_ms else []) + (["loss", f"{100 * loss}%"] if loss else [])
-                    args += ["rate", f"{rate_mbit}mbit"] if rate_mbit else []  # netem's own rate: delay after the wire
-                    _run(tc + ["replace", "dev", dev, "root", "netem"] + args)
+                    _run(tc + ["replace", "dev", dev, "root", "netem"] + netem_args(delay_ms, jitter_ms, loss, rate_mbit))
         self.link_state[key]["impair"] = None if clean else {"delay_ms": delay_ms, "jitter_ms": jitter_ms, "loss": loss,
                                                              "rate_mbit": rate_mbit}
 

@@ -430,9 +430,10 @@ def _md_faults(report: dict) -> list[str]:
     lines = ["## Faults applied", ""]
     if not report["faults"]:
         return lines + ["none", ""]
-    lines += ["| time (s) | swarm round | fault | rounds done per robot |", "|---|---|---|---|"]
+    lines += ["| time (s) | swarm round | fault | how | rounds done per robot |", "|---|---|---|---|---|"]
     for e in report["faults"]:
-        lines.append(f"| {_f(e.get('time'), '.1f')} | {e.get('swarm_round')} | {e.get('description')} | {e.get('robot_rounds')} |")
+        lines.append(f"| {_f(e.get('time'), '.1f')} | {e.get('swarm_round')} | {e.get('description')} | "
+                     f"{e.get('how') or ''} | {e.get('robot_rounds')} |")
     return lines + [""]
 
 

@@ -109,16 +109,25 @@ def fit_scenario(spec: ScenarioSpec, split_dir: Path) -> ScenarioSpec:
 
 
 def swarm_document(spec: ScenarioSpec, scene: str, endpoints: dict[int, str] | None, name: str,
-                   monitor_dir: str = "data/monitor") -> dict:
+                   monitor_dir: str = "data/monitor", separate_hosts: bool = False) -> dict:
     """The swarm TOML (as a dict) every robot of a scenario gets: the scenario's swarm sections,
     with per-robot snapshots always on (the report evaluates rounds/<k>.safetensors), and the
-    security of :func:`prepare_split`'s certificates (``monitor_dir``: relative to the swarm file)."""
+    security of :func:`prepare_split`'s certificates (``monitor_dir``: relative to the swarm file).
+
+    ``separate_hosts``: robots in namespaces or containers of one host, whose links are emulated.
+    Zenoh would pass large payloads between processes of one host through shared memory
+    (/dev/shm is not namespaced): only a small reference would cross the emulated link, and
+    delay/loss/bandwidth would not touch the snapshots. Measured: 0.12 MB crossed link 1-2 while
+    7.4 MB of snapshots "arrived" over it. Robots on separate machines share no memory, so it is off.
+    """
     sec = security_sections(spec.security.insecure, monitor_dir)
     network = {**to_dict(spec.network), **sec["network"]}
     for key in ("listen", "connect"):  # per robot, on its command line
         network.pop(key)
     if endpoints:
         network["endpoints"] = {str(k): v for k, v in endpoints.items()}
+    if separate_hosts:
+        network["extra"] = {"transport/shared_memory/enabled": "false", **(network.get("extra") or {})}
     security = {**to_dict(spec.security), **sec["security"]}
     return swarm_doc(name, spec.ids, spec.frames, spec.topology, scene, network=network, training=to_dict(spec.training),
                      daemon={**to_dict(spec.daemon), "keep_rounds": True}, align=to_dict(spec.align),
@@ -214,6 +223,8 @@ class ScenarioRunner:
         self.t0 = time.monotonic()
         self.endpoints: dict[int, tuple[list[str], list[str]]] = {}
         self.split_summary: dict = {}
+        self._health_checked: set[tuple[int, int]] = set()
+        self._health: list[tuple[int, int, subprocess.Popen]] = []  # healthchecks running: robot, start, podman
 
     # --- set-up -------------------------------------------------------------------------------
     def prepare(self) -> None:
@@ -231,15 +242,8 @@ class ScenarioRunner:
 
     def _swarm_toml(self, endpoints: dict[int, str] | None) -> Path:
         scene = "" if self.spec.record.enabled else "data/scene.json"  # recordings: the reference derives the box
-        doc = swarm_document(self.spec, scene, endpoints, f"{self.spec.name}-{os.getpid()}-{int(time.time()) % 100000}")
-        if self.mode == "netns":
-            # Zenoh passes large payloads between processes of one host through shared memory
-            # (/dev/shm is not namespaced): only a small reference would cross the emulated link, and
-            # delay/loss/bandwidth would not touch the snapshots. Measured: 0.12 MB crossed link 1-2
-            # while 7.4 MB of snapshots "arrived" over it. Robots on separate machines share no memory.
-            extra = dict(doc["network"].get("extra") or {})
-            extra.setdefault("transport/shared_memory/enabled", "false")
-            doc["network"]["extra"] = extra
+        doc = swarm_document(self.spec, scene, endpoints, f"{self.spec.name}-{os.getpid()}-{int(time.time()) % 100000}",
+                             separate_hosts=self.mode == "netns")
         path = self.out / "swarm.toml"
         path.write_text(f"# written by `dinerf-agent scenario run` for scenario {self.spec.name!r}\n" + dumps(doc))
         return path
@@ -255,6 +259,14 @@ class ScenarioRunner:
             self.endpoints = {i: tuple(link_scheme(self.spec, e) for e in self.lab.endpoints(i)) for i in self.spec.ids}
             self.swarm = self._swarm_toml(None)
             self._event("network", namespaces=self.lab.describe())
+        elif self.mode == "compose":
+            from cli.scenario.podman import ComposeLab
+
+            self.lab = ComposeLab(self.spec, self.out, echo=self.echo)
+            self.lab.create()  # docker-compose.yml and its swarm.toml, the networks and the containers
+            self.endpoints = self.lab.endpoints
+            self.swarm = self.out / "swarm.toml"
+            self._event("network", compose=self.lab.describe())
         else:
             ports = free_ports(len(self.spec.ids))
             own = {i: link_scheme(self.spec, [f"tcp/127.0.0.1:{p}"])[0] for i, p in zip(self.spec.ids, ports)}
@@ -264,6 +276,8 @@ class ScenarioRunner:
 
     # --- processes -----------------------------------------------------------------------------
     def _argv(self, i: int) -> list[str]:
+        if self.mode == "compose":
+            return self.lab.start_argv(i)
         listen, connect = self.endpoints[i]
         data = self.out / "data" / f"robot{i}"
         if self.spec.record.enabled:
@@ -287,19 +301,29 @@ class ScenarioRunner:
         r.starts += 1
         r.state = "running"
         self._event("start", robot=i, pid=r.proc.pid, start=r.starts)
+        if self.mode == "compose":
+            self.lab.after_start(i, r.proc)
+
+    def _signal(self, r: RobotProcess, sig: int) -> None:
+        """A signal to robot r's daemon: to its process, or to its container (compose)."""
+        with contextlib.suppress(ProcessLookupError):
+            if self.mode == "compose":
+                self.lab.signal(r.id, sig)
+            else:
+                r.proc.send_signal(sig)
 
     def _kill(self, i: int) -> None:
         r = self.robots[i]
         if r.proc is not None and r.proc.poll() is None:
-            r.proc.kill()  # SIGKILL to the daemon itself (ip netns exec execs, so it is the same pid)
-            r.proc.wait(timeout=10)
+            self._signal(r, signal.SIGKILL)  # to the daemon itself (ip netns exec execs, so it is the same pid)
+            r.proc.wait(timeout=30)
             r.exit_codes.append(r.proc.returncode)
         r.state = "killed"
 
     def _freeze(self, i: int, fault: FreezeFault) -> None:
         r = self.robots[i]
         if r.proc is not None and r.proc.poll() is None:
-            r.proc.send_signal(signal.SIGSTOP)
+            self._signal(r, signal.SIGSTOP)
             deadline = time.monotonic() + fault.seconds if fault.seconds > 0 else math.inf
             self._thaws.append((deadline, r.completed + fault.rounds if fault.rounds > 0 else None, i))
 
@@ -316,25 +340,27 @@ class ScenarioRunner:
             i = x[2]
             r = self.robots[i]
             if r.proc is not None and r.proc.poll() is None:
-                with contextlib.suppress(ProcessLookupError):
-                    r.proc.send_signal(signal.SIGCONT)
+                self._signal(r, signal.SIGCONT)
                 self._event("fault", fault="thaw", robot=i, description=f"SIGCONT robot {i}",
-                            robot_rounds=self._robot_rounds())
+                            robot_rounds=self._robot_rounds(), how=self._how("thaw"))
 
     def _stop_all(self) -> None:
         """SIGTERM every running daemon, wait a little, SIGKILL what remains."""
         self._thaw_due(everyone=True)  # a stopped process would not act on SIGTERM
         running = [r for r in self.robots.values() if r.proc is not None and r.proc.poll() is None]
         for r in running:
-            with contextlib.suppress(ProcessLookupError):
-                r.proc.send_signal(signal.SIGTERM)
+            self._signal(r, signal.SIGTERM)
         deadline = time.monotonic() + 15
         for r in running:
             with contextlib.suppress(subprocess.TimeoutExpired):
                 r.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
             if r.proc.poll() is None:
-                r.proc.kill()
-                r.proc.wait(timeout=10)
+                self._signal(r, signal.SIGKILL)
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    r.proc.wait(timeout=20)
+                if r.proc.poll() is None:
+                    r.proc.kill()  # compose: the attached `podman start` itself
+                    r.proc.wait(timeout=10)
             r.exit_codes.append(r.proc.returncode)
             if r.state == "running":
                 r.state = "stopped"
@@ -372,7 +398,18 @@ class ScenarioRunner:
                            "rate_mbit": x.rate_mbit}))
             if x.to_round is not None and x.to_round < self.spec.rounds:
                 items.append((x.to_round, 0, f"clean link {a}-{b}", lambda a=a, b=b: self.lab.impair(a, b), {"fault": "netem-end", "link": [a, b]}))
+        for *_, info in items:
+            info["how"] = self._how(info["fault"], tuple(info["link"]) if "link" in info else None)
         return sorted(items, key=lambda t: (t[0], t[1]))
+
+    def _how(self, fault: str, link: tuple[int, int] | None = None) -> str:
+        """How a fault reaches the robots, for run.json and the report."""
+        if self.mode == "compose":
+            return self.lab.how(fault, link)
+        if fault.startswith("netem") and link is not None and self.lab is not None:
+            return "tc netem on both ends" if self.lab.impair_backend(*link) == "netem" else "the link's relay (linkemu)"
+        return {"kill": "SIGKILL", "restart": "the same `up` on the same run dir", "freeze": "SIGSTOP", "thaw": "SIGCONT",
+                "cut": "ip link set down on both ends", "heal": "ip link set up on both ends"}.get(fault, "")
 
     def _robot_rounds(self) -> dict[int, int]:
         """Rounds each robot has completed: recorded with every fault, so tests can place it."""
@@ -411,6 +448,7 @@ class ScenarioRunner:
                 ok, reason = False, f"interrupted ({e or 'Ctrl-C'})"
                 self.echo(f"[scenario] {reason}: stopping the robots")
             finally:
+                self._collect_health(wait=True)
                 self._stop_all()
                 if self.lab is not None:
                     self.lab.cleanup()
@@ -428,6 +466,7 @@ class ScenarioRunner:
         seen_round = 0
         while True:
             self._thaw_due()
+            self._collect_health()
             for r in self.robots.values():
                 for rec in r.poll_telemetry():
                     self._progress(r.id, rec)
@@ -468,6 +507,20 @@ class ScenarioRunner:
         if rec.psnr is not None:
             line += f", psnr {rec.psnr:.2f}"
         self.echo(f"{line}, heard {rec.heard}")
+        start = (robot, self.robots[robot].starts)
+        if self.mode == "compose" and start not in self._health_checked:  # the image's HEALTHCHECK, once per start
+            self._health_checked.add(start)
+            self._health.append((*start, self.lab.health_check(robot)))
+
+    def _collect_health(self, wait: bool = False) -> None:
+        """Record the healthchecks that have answered (all of them with ``wait``)."""
+        for item in list(self._health):
+            robot, start, proc = item
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                out, err = proc.communicate(timeout=30 if wait else 0.001)
+                self._health.remove(item)
+                status = out.strip() or " ".join(err.split())[-200:] or ("healthy" if proc.returncode == 0 else "unhealthy")
+                self._event("health", robot=robot, start=start, healthy=proc.returncode == 0, status=status)
 
     def _write_run_json(self, ok: bool, reason: str, seconds: float) -> None:
         doc = {

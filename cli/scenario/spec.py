@@ -45,7 +45,7 @@ error that names it. Example (every table but ``[scenario]`` is optional)::
     orbit_frames = 36                          # orbit.gif of the reference's final model (0 = none)
     # orbit_all_robots = true                  # ... and of every other robot's, side by side
     [run]
-    mode = "local"                             # or netns (root); timeout_s = 600 ...
+    mode = "local"                             # or netns, compose (root); timeout_s = 600 ...
 
 "Round k" in the timeline means: as soon as every running robot has completed k rounds
 (rounds count from 0; the slowest sets the pace). ``to_round`` is when the fault ends (the link is healed or made clean
@@ -89,7 +89,7 @@ __all__ = [
     "resolve_dataset",
 ]
 
-Mode = Literal["local", "netns"]
+Mode = Literal["local", "netns", "compose"]
 
 
 def repo_root() -> Path:
@@ -259,7 +259,7 @@ class RecordSpec:
 
 @dataclass
 class RunSpec:
-    mode: Mode = "local"  # local: loopback processes; netns: one network namespace per robot (root)
+    mode: Mode = "local"  # local: loopback processes; netns: a network namespace per robot; compose: a container (root)
     timeout_s: float = 900.0  # the whole swarm run, start to done
     impair: Literal["auto", "netem", "relay"] = "auto"  # how [[faults.netem]] is done, see cli.scenario.netns
 
@@ -405,11 +405,12 @@ class ScenarioSpec:
 
     def check_mode(self, mode: str) -> None:
         """Link faults need real links: a clear error instead of a run that silently ignores them."""
-        if mode not in ("local", "netns"):
-            raise ConfigError(f"mode must be local or netns, got {mode!r}")
+        if mode not in ("local", "netns", "compose"):
+            raise ConfigError(f"mode must be local, netns or compose, got {mode!r}")
         if mode == "local" and self.faults.needs_netns:
             kinds = [k for k in ("cut", "netem") if getattr(self.faults, k)]
-            raise ConfigError(f"scenario {self.name!r} has link faults ({', '.join(kinds)}): they need --mode netns (as root)")
+            raise ConfigError(f"scenario {self.name!r} has link faults ({', '.join(kinds)}): they need --mode netns "
+                              "or compose (as root)")
 
     def resolved_dataset(self) -> str:
         return resolve_dataset(self.dataset, self.path.parent if self.path else None)

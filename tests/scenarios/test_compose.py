@@ -154,8 +154,10 @@ def test_docker_compose_config_accepts_it(tmp_path):
 
 def test_dockerfile_uses_the_cpu_wheel():
     text = (ROOT / "Dockerfile").read_text()
-    assert "FROM python:3.11-slim" in text
-    assert "torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu" in text
+    # python:3.11-slim and the CPU index by default; build args only for a machine without a registry
+    assert "ARG BASE_IMAGE=python:3.11-slim\nFROM ${BASE_IMAGE}\n" in text
+    assert "ARG TORCH_SPEC=torch==2.13.0\nARG TORCH_INDEX=https://download.pytorch.org/whl/cpu\n" in text
+    assert 'pip install "${TORCH_SPEC}" ${TORCH_INDEX:+--index-url "$TORCH_INDEX"}' in text
     assert 'ENTRYPOINT ["dinerf-agent"]' in text
     assert "\nUSER dinerf\n" in text and "COPY scenarios ./scenarios" in text
     assert 'HEALTHCHECK' in text and '"health", "/run/robot"' in text
@@ -184,7 +186,7 @@ def test_compose_runs_robots_as_the_host_user_with_run_dirs_made_in_advance(tmp_
     path = write_compose(spec, tmp_path / "out" / "docker-compose.yml", with_data=True)
     doc = compose_document(spec, path.parent)
     assert all(svc["user"] == "${DINERF_UID:-1000}:${DINERF_GID:-1000}" for svc in doc["services"].values())
-    assert all((path.parent / f"runs/robot{i}").is_dir() for i in spec.ids)
+    assert all((path.parent / f"robots/{i}").is_dir() for i in spec.ids)  # the layout of a `scenario run`
 
 
 def test_shipped_compose_files_are_current():
