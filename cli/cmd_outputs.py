@@ -127,8 +127,8 @@ def eval_(
             console.print(_view_table(doc))
     cross = score_own_frames(run, run.ids, round=round, with_ssim=ssim, device=device, echo=typer.echo)
     if cross is None and run.split_dir is None:
-        raise UserError(f"{run_dir}: nothing to score against: no split's held-out views (eval/, truth.json) and no "
-                        "robot kept frames of its own out of training (training.own_holdout_every = 0)")
+        raise UserError(f"{run_dir}: no held-out views to score against: no split's (eval/, truth.json), and no robot "
+                        "kept frames of its own out of training (training.own_holdout_every = 0)")
     if cross is not None:
         doc["cross"] = cross
         console.print(_cross_table(cross, robots))
