@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from agent.checkpoint import RunFolder, load_robot
+from agent.checkpoint import RunFolder, load_for_eval, load_robot
 from agent.consensus import disagreement
 from agent.data.split import robot_folder
 from agent.data.views import DataError
@@ -59,7 +59,7 @@ class SwarmRun:
 
     def load(self, robot_id: int, round: int | None = None) -> RobotTrainer:
         """The robot's trainer as it was after ``round`` (default: its last checkpoint)."""
-        return self.load_setup(robot_id, round).trainer
+        return load_for_eval(self.run_dirs[robot_id], self.data_dir(robot_id), round=round)
 
     def load_setup(self, robot_id: int, round: int | None = None) -> RobotSetup:
         """As :meth:`load`, with its own held-out views; the robot's views are read once per run."""
