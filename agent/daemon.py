@@ -307,6 +307,8 @@ class Daemon:
         """Continue from our checkpoint, if there is one. One that cannot be used stops the robot
         with one line (CheckpointError) and stays where it is: resuming from a damaged or foreign
         state, or silently starting over, would both be worse than asking the user."""
+        if (stale := self.folder.remove_stale_temporaries())[0]:
+            self.report.say(f"removed {stale[0]} temporary file(s) of a save that never finished ({stale[1] / 1e6:.1f} MB)")
         try:
             ck = self.folder.load(self.robot_id)
         except CheckpointError as e:
@@ -315,6 +317,8 @@ class Daemon:
             return False
         path = self.folder.checkpoint
         try:
+            if ck.round > self.training.rounds:
+                raise ValueError(f"it is of round {ck.round}, past training.rounds = {self.training.rounds}")
             if self.bootstrap.box_pending:  # learnt before the restart
                 self.bootstrap.adopt_box(ck.box_from_shared.double().cpu().numpy(), "our checkpoint")
             if ck.signature != self.spec.signature():

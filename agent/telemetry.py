@@ -121,7 +121,11 @@ class PlateauRule:
 
 
 class JsonLines:
-    """An append-only JSON-lines file written from several threads, flushed line by line."""
+    """An append-only JSON-lines file written from several threads, flushed line by line.
+
+    A line written after :meth:`close` is dropped: a network callback (a neighbour's token gone
+    while this robot shuts down) may still report after the robot closed its files, and it
+    used to end in "I/O operation on closed file" in the log."""
 
     def __init__(self, path: Path) -> None:
         self._file: TextIO = open(path, "a")
@@ -129,6 +133,8 @@ class JsonLines:
 
     def write_line(self, line: str) -> None:
         with self._lock:
+            if self._file.closed:
+                return
             self._file.write(line + "\n")
             self._file.flush()
 
