@@ -22,7 +22,6 @@ shared frame, the field and every other robot's pose stay valid.
 from __future__ import annotations
 
 import dataclasses
-import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -41,7 +40,8 @@ from agent.data.capture import estimate_scene_box, field_box_mismatch
 from agent.data.views import Views
 from agent.geometry import box_from_center, pose_summary
 from agent.swarm import RobotSetup, SwarmTrainingConfig, build_robot
-from agent.telemetry import EventLog, JsonLines, PlateauRule, Reporter, RoundRecord, StatusBoard
+from agent.round_report import RoundReport, RoundTimes
+from agent.telemetry import EventLog, JsonLines, PlateauRule, Reporter, StatusBoard
 from protocol import codec
 from protocol.compression import CompressionConfig
 from protocol.exchange import ExchangeTiming, SnapshotExchange, plan_catch_up
@@ -205,12 +205,11 @@ class Daemon:
                                    self._model_changed)
         self._model_changed()
         self._last_heard: dict[int, ThetaSnapshot] = {}
-        self._traffic_at_record: dict = {}  # the counters at the last round's record: the next window starts there
-        self._rgb_losses: list[float] = []
-        self._warned_flat = False
-        self._isolated_rounds = 0  # consecutive rounds in consensus without hearing any neighbour
         self._round_compute_s: float | None = None  # our last round's training time: may we train through a gap?
-        self._cpu_at_record = 0.0  # the process's CPU time at the last round record
+        self.rounds_report = RoundReport(
+            robot_id, training.rounds, self.setup, network, self.exchange, self.membership, self.presence.reachable,
+            self.board, self.report, self._telemetry, eval_every=cfg.eval_every, plateau=cfg.plateau,
+            isolated_after=cfg.isolated_after, compression=cfg.exchange.compression)
 
     def _model_changed(self) -> None:
         """(Re)derive what our snapshots are and what a neighbour's must look like (our box is in it)."""
@@ -373,8 +372,7 @@ class Daemon:
             self._apply_reference()
             self.report.event("start", resumed=resumed, alive=sorted(self.membership.alive),
                               reference=self.membership.reference)
-            stats0 = self._traffic()
-            self._cpu_at_record = time.process_time()
+            self.rounds_report.start()
             if self._in_consensus():
                 self._publish_theta(self.round)
             heard = self._barrier()[0]
@@ -382,8 +380,7 @@ class Daemon:
             self.mailbox.advance(self.round)
             while self.round < self.training.rounds:
                 self._check_stop()
-                completed += self._one_round(heard_in=heard, stats_before=stats0)
-                stats0 = self._traffic_at_record
+                completed += self._one_round(heard_in=heard)
                 heard = self._last_heard
             self.folder.write_done(self.robot_id, self.round, self.report.rejected_counts())
             self.report.say(f"done: {self.round} rounds")
@@ -400,7 +397,7 @@ class Daemon:
             self._telemetry.close()
         return completed
 
-    def _one_round(self, heard_in: dict[int, ThetaSnapshot], stats_before: dict) -> int:
+    def _one_round(self, heard_in: dict[int, ThetaSnapshot]) -> int:
         k = self.round
         t0, cpu0 = time.monotonic(), time.process_time()
         aligned = self._in_consensus()
@@ -423,106 +420,9 @@ class Daemon:
             self._maybe_realign(heard)
         self._last_heard = heard
         self._checkpoint()
-        pose = self._pose()
-        record = self._round_record(stats, sorted(heard) if aligned else [], stats_before, pose,
-                                    t_compute=t_compute, cpu_compute=cpu_compute, waited=waited)
-        self._telemetry.write_line(record.to_json())
-        net = self.net.stats()
-        self.board.set(phase="round_done", loss=stats.loss, psnr=record.psnr, heard=record.heard,
-                       bytes_in_total=net["bytes_in_total"], bytes_out_total=net["bytes_out_total"],
-                       seconds_compute=t_compute, seconds_wait=waited, pose7=pose[1]["params7"])
-        (self.report.warn if record.alignment == "unaligned" else self.report.say)(record.log_line(self.training.rounds))
-        self._warn_if_flat(stats.rgb_loss)
-        self._warn_if_isolated(record.heard if aligned else None)
+        self.rounds_report.round_done(self.round, stats, sorted(heard) if aligned else None, self.elected,
+                                      RoundTimes(t_compute, cpu_compute, waited), self.spec.float32_bytes)
         return 1
-
-    def _warn_if_isolated(self, heard: list[int] | None) -> None:
-        """Say it when an aligned robot hears none of its neighbours for ``isolated_after`` rounds
-        in a row (it trains alone, and nothing else in its log line says why), and when it hears
-        them again. ``heard`` None: not in consensus (unaligned), which has warnings of its own."""
-        if heard is None or heard or not self.exchange.neighbours:
-            if heard and self._isolated_rounds >= self.cfg.isolated_after > 0:
-                self.report.say(f"hears its neighbours again ({heard}) after {self._isolated_rounds} rounds alone")
-            self._isolated_rounds = 0
-            return
-        self._isolated_rounds += 1
-        if self._isolated_rounds != self.cfg.isolated_after:
-            return
-        mb = self.spec.float32_bytes / 1e6
-        self.report.event("isolated", rounds=self._isolated_rounds, neighbours=sorted(self.exchange.neighbours))
-        self.report.warn(f"heard none of its neighbours {sorted(self.exchange.neighbours)} for {self._isolated_rounds} "
-                         f"rounds: it trains alone. Are they up and reachable? On a slow link a snapshot may never get "
-                         f"through: this field is {mb:.1f} MB at float32, sent as {self.cfg.exchange.compression!r} "
-                         "(daemon.exchange.compression)")
-
-    def _warn_if_flat(self, rgb_loss: float) -> None:
-        """Say it once when the photometric loss stops moving while still high (agent.telemetry.PlateauRule)."""
-        self._rgb_losses.append(rgb_loss)
-        if self._warned_flat or not self.cfg.plateau.is_flat(self._rgb_losses):
-            return
-        self._warned_flat = True
-        last = self._rgb_losses[-self.cfg.plateau.window:]
-        mean = sum(last) / len(last)
-        self.report.event("loss_flat", rgb_loss=mean, rounds=len(last))
-        self.report.warn(f"the training loss has been flat at {mean:.4f} ({-10 * math.log10(mean):.1f} dB) for "
-                         f"{len(last)} rounds: the field may not model what the cameras see (an RGB capture needs "
-                         "an unbounded field: training.train.field.unbounded; see `dinerf-agent inspect` warnings)")
-
-    def _traffic(self) -> dict:
-        """The network's counters and, per neighbour, the snapshot bytes pushed so far."""
-        return {**self.net.stats(), "links": self.exchange.bytes_sent()}
-
-    def _link_bytes(self, now: dict, stats_before: dict) -> tuple[dict[int, int], float | None]:
-        """Per neighbour the snapshot bytes pushed this round, and their mean over the raw float32 size."""
-        before = stats_before.get("links", {})
-        links = {j: b - before.get(j, 0) for j, b in now["links"].items()}
-        links = {j: b for j, b in links.items() if b}
-        raw = self.spec.float32_bytes
-        return links, (sum(links.values()) / len(links) / raw if links and raw else None)
-
-    def _cpu_since_record(self) -> float:
-        """What the round cost this robot in CPU (all threads), whatever else the machine ran."""
-        now, before = time.process_time(), self._cpu_at_record
-        self._cpu_at_record = now
-        return now - before
-
-    def _pose(self) -> tuple[Tensor, dict]:
-        """The pose estimate ``[4, 4]`` and its summary, computed once for the round's record and status."""
-        with torch.no_grad():
-            matrix = self.trainer.pose.matrix().detach()
-            return matrix, pose_summary(matrix)
-
-    def _own_psnr(self) -> float | None:
-        """PSNR on the robot's own held-out views, when this round is one to evaluate."""
-        every = self.cfg.eval_every
-        if every <= 0 or self.setup.holdout is None or (self.round % every and self.round != self.training.rounds):
-            return None
-        scores = self.trainer.evaluate(self.setup.holdout, frame="local", with_ssim=False)["psnr"]
-        return sum(scores) / len(scores)
-
-    def _round_record(self, stats, heard: list[int], stats_before: dict, pose: tuple[Tensor, dict], *,
-                      t_compute: float, cpu_compute: float, waited: float) -> RoundRecord:
-        psnr = self._own_psnr()
-        # Counted from the end of the last round's window: a neighbour already a round ahead may
-        # be counted in the round before the one its snapshot is for, but no byte goes uncounted.
-        net = self._traffic_at_record = self._traffic()
-        bytes_in = {int(j): net["bytes_in"].get(j, 0) - stats_before["bytes_in"].get(j, 0) for j in net["bytes_in"]}
-        (matrix, summary), s = pose, self.board.own()
-        links, ratio = self._link_bytes(net, stats_before)
-        return RoundRecord(
-            robot=self.robot_id, round=self.round, time=time.time(), monotonic=time.monotonic(), loss=stats.loss,
-            rgb_loss=stats.rgb_loss, depth_loss=stats.depth_loss, batch_psnr=stats.batch_psnr, psnr=psnr,
-            samples_per_ray=stats.samples_per_ray, pose=matrix.double().cpu().tolist(),
-            pose_rotation_deg=summary["rotation_deg"], pose_translation=summary["translation"], pose_scale=summary["scale"],
-            reference=self.membership.reference, elected=self.elected, epoch=self.membership.epoch,
-            live_neighbours=sorted(self.membership.live_neighbours), reachable=sorted(self.presence.reachable()),
-            heard=heard, bytes_in={j: b for j, b in bytes_in.items() if b},
-            bytes_out=net["bytes_out_total"] - stats_before["bytes_out_total"], bytes_out_links=links,
-            wire_ratio=ratio, seconds_compute=t_compute,
-            seconds_wait=waited, cpu_seconds=self._cpu_since_record(), cpu_seconds_compute=cpu_compute,
-            seconds_last_put=self.exchange.last_put_seconds(), steps=stats.steps,
-            seconds_per_step=stats.seconds / max(stats.steps, 1), rejected=self.report.rejected_counts(),
-            alignment=Alignment(s["alignment"]).value, alignment_detail=s["alignment_detail"])
 
     # ------------------------------------------------------------------ snapshots, joining, catching up
     def _publish_theta(self, round_index: int) -> None:
