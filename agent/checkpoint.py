@@ -239,8 +239,10 @@ class RunFolder:
             raise CheckpointError(self.data_record, "malformed: expected {\"data\": <folder>}")
         return Path(doc["data"])
 
-    def write_done(self, robot_id: int, rounds: int, rejected: dict[str, int]) -> None:
-        done = {"robot": robot_id, "rounds": rounds, "time": time.time(), "rejected": rejected}
+    def write_done(self, robot_id: int, rounds: int, rejected: dict[str, int], **extra: Any) -> None:
+        """``rounds`` reached; ``extra``: e.g. the steps trained and the joins and skips that
+        moved the round otherwise (each taken from a quorum of neighbours)."""
+        done = {"robot": robot_id, "rounds": rounds, "time": time.time(), "rejected": rejected, **extra}
         atomic_write_text(self.done, json.dumps(done, indent=2) + "\n")
 
 

@@ -40,11 +40,14 @@ from agent.data.capture import estimate_scene_box, field_box_mismatch
 from agent.data.views import Views
 from agent.geometry import box_from_center, pose_summary
 from agent.swarm import RobotSetup, SwarmTrainingConfig, build_robot
+from agent.rejoin import Rejoin, RejoinPolicy, to_torch
 from agent.round_report import RoundReport, RoundTimes
 from agent.telemetry import EventLog, JsonLines, PlateauRule, Reporter, StatusBoard
+from agent.vigilance import Vigilance
 from protocol import codec
 from protocol.compression import CompressionConfig
-from protocol.exchange import ExchangeTiming, SnapshotExchange, plan_catch_up
+from protocol.evidence import ClaimPace
+from protocol.exchange import ExchangeTiming, SnapshotExchange
 from protocol.keys import Keys
 from protocol.membership import Membership, Topology
 from protocol.messages import Alignment, ModelSpec, Status, ThetaSnapshot
@@ -74,6 +77,10 @@ class DaemonConfig:
     # its own is stale, and C-ADMM would pull the neighbours back towards it. 0 = keep its own.
     adopt_after_rounds: int = 2
     resend_delay_s: float = 1.0  # re-push our snapshot this long after a neighbour's link appears
+    # A neighbour's claimed round counts only as far as its pace explains: one round per this
+    # fraction of our own fastest recent round (protocol.evidence.ClaimPace). Robots may differ in speed.
+    pace_margin: float = 4.0
+    refused_after: int = 3  # a neighbour whose snapshots were refused this many rounds in a row is not waited for
     # Initial relative pose: "identity" (the paper) or "coarse": match compact keyframe summaries
     # (descriptors + 3-D points, never images) with neighbours whose pose is already known.
     # None: what the swarm's frames call for (agent.frames: identity when shared, else coarse)
@@ -100,14 +107,14 @@ class DaemonConfig:
         if self.wire_dtype != "float32" and self.exchange.compression != "none":
             raise ValueError(f"daemon.wire_dtype = {self.wire_dtype!r} and daemon.exchange.compression = "
                              f"{self.exchange.compression!r}: choose one (compression = \"fp16\" is float16)")
-        check(self, isolated_after=">= 0")
+        check(self, isolated_after=">= 0", pace_margin=">= 1", refused_after=">= 1")
         if self.silent_after_s < 2 * self.heartbeat_s:
             raise ValueError(f"silent_after_s ({self.silent_after_s}) must be at least two heartbeats "
                              f"({2 * self.heartbeat_s} s): one lost heartbeat must not count as silence")
 
     def exchange_timing(self) -> ExchangeTiming:
         return ExchangeTiming(self.round_timeout_s, self.pull_after_s, self.silent_after_s, self.join_timeout_s,
-                              self.resend_delay_s)
+                              self.resend_delay_s, self.refused_after)
 
 
 @dataclass(frozen=True)
@@ -139,11 +146,6 @@ def model_spec(setup: RobotSetup) -> ModelSpec:
 
 def _to_numpy(theta: Mapping[str, Tensor]) -> dict[str, np.ndarray]:
     return {n: np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32) for n, t in theta.items()}
-
-
-def _to_torch(snapshots: Mapping[int, ThetaSnapshot]) -> dict[int, dict[str, Tensor]]:
-    return {j: {n: torch.from_numpy(np.array(a, dtype=np.float32, copy=True)) for n, a in m.tensors.items()}
-            for j, m in snapshots.items()}
 
 
 class Daemon:
@@ -185,6 +187,7 @@ class Daemon:
         self.setup = build_robot(robot_id, views, box_from_shared, training, initial_pose, is_reference=False)
         self.trainer = self.setup.trainer
         self.mailbox: Mailbox[ThetaSnapshot] = Mailbox(max_ahead=cfg.max_ahead, last_round=training.rounds)
+        self.pace = ClaimPace()
         self.presence = Presence(network, self.keys, robot_id, swarm.topology, cfg.alive_expiry_s, cfg.heartbeat_s,
                                  self._stop, self._status_message, self._heard_status,
                                  lambda j: self.exchange.link_appeared(j), self._membership_changed,
@@ -206,6 +209,14 @@ class Daemon:
         self._model_changed()
         self._last_heard: dict[int, ThetaSnapshot] = {}
         self._round_compute_s: float | None = None  # our last round's training time: may we train through a gap?
+        self._recent_compute_s: list[float] = []  # the last rounds' training times: the pace a neighbour may keep
+        self._moves: list[dict] = []  # joins and skips of this process, for done.json
+        self.rejoin = Rejoin(RejoinPolicy(training.rounds, cfg.adopt_after_rounds, cfg.round_timeout_s,
+                                          cfg.heartbeat_s), self.trainer, self.exchange, self.mailbox, self.report,
+                             self._stop, self._consensus_peers, self._in_consensus, self._claimed_round)
+        consensus = self.trainer.consensus
+        self.vigilance = Vigilance(self.report, self.pace, self.exchange.refusals,
+                                   consensus.clipper if consensus is not None else None)
         self.rounds_report = RoundReport(
             robot_id, training.rounds, self.setup, network, self.exchange, self.membership, self.presence.reachable,
             self.board, self.report, self._telemetry, eval_every=cfg.eval_every, plateau=cfg.plateau,
@@ -221,9 +232,9 @@ class Daemon:
 
     # ------------------------------------------------------------------ callbacks
     def _claimed_round(self, j: int) -> int | None:
-        """The round neighbour j says, in its newest heartbeat, that it has completed."""
-        status = self.board.peers().get(j)
-        return None if status is None else status.round
+        """The round neighbour j says, in its newest heartbeat, that it has completed, as far as
+        its pace explains it (``protocol.evidence.ClaimPace``)."""
+        return self.pace.credible(j)
 
     def _in_consensus(self) -> bool:
         """Whether this robot's frame is placed (reference, identity by configuration, coarse)."""
@@ -239,8 +250,9 @@ class Daemon:
     def _barrier(self) -> tuple[dict[int, ThetaSnapshot], float]:
         """The round's barrier; what it returns only from neighbours still in consensus when it ends
         (one that turned unaligned meanwhile is never averaged with)."""
-        heard, waited = self.exchange.barrier(self.round, self._consensus_peers)
-        peers = self._consensus_peers()
+        quarantined = self.trainer.consensus.clipper.quarantined if self.trainer.consensus is not None else set()
+        heard, waited = self.exchange.barrier(self.round, lambda: self._consensus_peers() - quarantined)
+        peers = self._consensus_peers()  # a quarantined neighbour's model is still measured (agent.robust)
         return {j: m for j, m in heard.items() if j in peers}, waited
 
     def _maybe_realign(self, heard: dict[int, ThetaSnapshot]) -> None:
@@ -252,16 +264,17 @@ class Daemon:
         if not self.bootstrap.retry(from_field=self.round >= self.cfg.realign_from_field_after):
             return
         if heard:
-            self._adopt_mean(list(heard.values()), reset_duals=True)
+            self.rejoin.adopt(heard, reset_duals=True)
         self.trainer.reset_occupancy()
         self.report.event("entered_consensus", neighbours=sorted(heard))
         self.report.say(f"aligned at round {self.round}: taking the neighbours' model {sorted(heard)}, in consensus now")
 
     def _heard_status(self, status: Status) -> None:
         """A neighbour's heartbeat; one claiming a newer round may vouch for a snapshot the barrier holds."""
-        before = self.board.peers().get(status.sender)
+        before = self.pace.credible(status.sender)
         self.board.heard_from(status.sender, status)
-        if before is None or status.round > before.round:
+        self.vigilance.heard_claim(status.sender, status.round, time.monotonic(), self.round)
+        if before is None or (self.pace.credible(status.sender) or 0) > before:
             self.mailbox.notify()
 
     def _membership_changed(self, m: Membership) -> None:
@@ -293,7 +306,8 @@ class Daemon:
             bytes_in=int(s.get("bytes_in_total", 0)), bytes_out=int(s.get("bytes_out_total", 0)),
             rejected=self.report.rejected_counts(), alignment=s["alignment"], alignment_detail=s["alignment_detail"],
             wall_time=time.time(), seconds_compute=float(s.get("seconds_compute", 0.0)),
-            seconds_wait=float(s.get("seconds_wait", 0.0)), alive_ages=self.presence.alive.report())
+            seconds_wait=float(s.get("seconds_wait", 0.0)), alive_ages=self.presence.alive.report(),
+            suspects=self.vigilance.suspects())
 
     # ------------------------------------------------------------------ checkpoints
     def _checkpoint(self) -> None:
@@ -368,7 +382,10 @@ class Daemon:
             self._wait_for_roster()
             if self.cfg.initial_pose == "coarse" and not resumed:
                 self.bootstrap.coarse_alignment()
-            self._join_current_round()
+            if (move := self.rejoin.join(self.round)) is not None:
+                self.round = move.to_round
+                self._moves.append({"kind": move.kind, "from": move.from_round, "to": move.to_round,
+                                    "adopted": list(move.adopted)})
             self._apply_reference()
             self.report.event("start", resumed=resumed, alive=sorted(self.membership.alive),
                               reference=self.membership.reference)
@@ -378,11 +395,14 @@ class Daemon:
             heard = self._barrier()[0]
             heard = self._catch_up(heard)
             self.mailbox.advance(self.round)
+            if self._moves:  # a join or a skip leaves a checkpoint of where it landed
+                self._checkpoint()
             while self.round < self.training.rounds:
                 self._check_stop()
                 completed += self._one_round(heard_in=heard)
                 heard = self._last_heard
-            self.folder.write_done(self.robot_id, self.round, self.report.rejected_counts())
+            self.folder.write_done(self.robot_id, self.round, self.report.rejected_counts(), steps=self.trainer.step,
+                                   moves=self._moves)
             self.report.say(f"done: {self.round} rounds")
             deadline = time.monotonic() + self.cfg.linger_s  # our last snapshot must still get out
             self.exchange.wait_sent(self.cfg.linger_s)
@@ -402,7 +422,7 @@ class Daemon:
         t0, cpu0 = time.monotonic(), time.process_time()
         aligned = self._in_consensus()
         self.board.set(phase="training")
-        self.trainer.begin_round(k, _to_torch(heard_in if aligned else {}), own=self._as_received(k))
+        self.trainer.begin_round(k, to_torch(heard_in if aligned else {}), own=self._as_received(k))
         stats = self.trainer.train(self.training.steps_per_round, on_step=self._check_stop)
         self.round = k + 1
         t_compute = self._round_compute_s = time.monotonic() - t0
@@ -413,15 +433,21 @@ class Daemon:
         self.presence.beat_now()
         heard, waited = self._barrier()  # unaligned: for the pace only
         self._apply_reference()  # a failover seen while waiting takes effect now, not next round
-        self.trainer.end_round(_to_torch(heard if aligned else {}), own=self._as_received(self.round))
+        self.trainer.end_round(to_torch(heard if aligned else {}), own=self._as_received(self.round))
+        if (consensus := self.trainer.consensus) is not None:
+            self.vigilance.consensus_news(consensus.news, self.round)
+        self._recent_compute_s = (self._recent_compute_s + [t_compute])[-8:]
+        self.pace.min_round_s = min(self._recent_compute_s) / self.cfg.pace_margin
         heard = self._catch_up(heard)
         self.mailbox.advance(self.round)  # slide the window: keeps accepting up to round + max_ahead
         if not aligned:
             self._maybe_realign(heard)
         self._last_heard = heard
         self._checkpoint()
+        factors = consensus.clipper.factors if consensus is not None else {}
         self.rounds_report.round_done(self.round, stats, sorted(heard) if aligned else None, self.elected,
-                                      RoundTimes(t_compute, cpu_compute, waited), self.spec.float32_bytes)
+                                      RoundTimes(t_compute, cpu_compute, waited), self.spec.float32_bytes,
+                                      clipped={j: f for j, f in factors.items() if f < 1}, suspects=self.vigilance.suspects())
         return 1
 
     # ------------------------------------------------------------------ snapshots, joining, catching up
@@ -439,79 +465,15 @@ class Daemon:
             return None
         return {n: torch.from_numpy(np.array(a, dtype=np.float32, copy=True)) for n, a in held[1].items()}
 
-    def _join_current_round(self) -> None:
-        """Late join / restart: fetch the neighbours' newest snapshots and move to their round.
-
-        A snapshot counts only up to the round its sender's own heartbeat says it has completed,
-        and the round joined is the one the neighbours agree on (the lower median): no single
-        answer, forged or not, can move a robot to another round."""
-        newest: dict[int, ThetaSnapshot] = {}
-        for j in sorted(self.presence.reachable()):
-            claim = self._wait_for_claim(j)
-            if claim is not None and (msg := self.exchange.fetch_latest(j, at_most=claim)) is not None:
-                newest[j] = msg
-        if not newest:
-            return
-        # the round the neighbours agree on (the lower median): one reply cannot move us alone
-        rounds = sorted(m.round for m in newest.values())
-        target = min(rounds[(len(rounds) - 1) // 2], self.training.rounds)
-        if target > self.round:
-            fresh_start = self.round == 0 and self.trainer.step == 0
-            # an unaligned robot keeps its own field: the neighbours' lives in a frame it cannot place yet
-            adopt = (fresh_start or self._is_stale(target)) and self._in_consensus()
-            if adopt:  # a new robot starts from the swarm's current model, not from theta^0
-                self._adopt_mean([m for m in newest.values() if m.round == target], reset_duals=not fresh_start)
-            self.report.event("joined", from_round=self.round, to_round=target, fresh=fresh_start, adopted=adopt)
-            self.report.say(f"joining the swarm at round {target} (was at {self.round}"
-                            f"{', taking the neighbours mean model' if adopt else ''})")
-            self.round = target
-            self.mailbox.advance(target)
-        for j, m in newest.items():
-            if m.round >= self.round:
-                self.exchange.offer_quietly(j, m)
-
-    def _wait_for_claim(self, j: int) -> int | None:
-        """j's claimed round, waiting a few heartbeats for its first status if none came yet."""
-        deadline = time.monotonic() + 4 * self.cfg.heartbeat_s
-        while (claim := self._claimed_round(j)) is None and time.monotonic() < deadline and not self._stop.is_set():
-            time.sleep(0.05)
-        return claim
-
-    def _is_stale(self, target: int) -> bool:
-        return self.cfg.adopt_after_rounds > 0 and target - self.round >= self.cfg.adopt_after_rounds
-
-    def _adopt_mean(self, snapshots: list[ThetaSnapshot], reset_duals: bool) -> None:
-        """Replace theta_i by the mean of the neighbours' snapshots (all of one round)."""
-        thetas = list(_to_torch(dict(enumerate(snapshots))).values())
-        self.trainer.load_theta({n: sum(t[n] for t in thetas) / len(thetas) for n in thetas[0]},
-                                reset_duals=reset_duals)
-
     def _catch_up(self, heard: dict[int, ThetaSnapshot]) -> dict[int, ThetaSnapshot]:
-        """If neighbours moved on without us (we were slow or cut off), catch up with them.
-
-        A neighbour one round ahead is normal: it is waiting at its barrier for our next snapshot.
-        Two or more ahead means it passed a barrier without us and now waits for our round-``target``
-        snapshot. Training through costs no steps; skipping keeps it from timing out round after
-        round when training through would take too long (``plan_catch_up``).
-        """
-        newest = {j: self.exchange.credible_round(j, self.round) for j in self._consensus_peers()}
-        plan = plan_catch_up(self.round, newest, self._round_compute_s, self.cfg.round_timeout_s / 2)
-        if plan is None:
+        """Skip to the round a quorum of neighbours reached without us (``agent.rejoin``)."""
+        move = self.rejoin.catch_up(self.round, self._round_compute_s)
+        if move is None:
             return heard
-        action, target = plan
-        if action == "train":
-            self.report.event("training_through", from_round=self.round, to_round=target)
-            return heard
-        self.mailbox.advance(target)  # first: a snapshot kept beyond the window is in place only now
-        items = {j: m for j, m in self.mailbox.items(target).items() if j in self.membership.neighbours}
-        adopt = self._is_stale(target) and bool(items)
-        if adopt:
-            self._adopt_mean(list(items.values()), reset_duals=True)
-        self.report.event("caught_up", from_round=self.round, to_round=target, adopted=adopt)
-        self.report.say(f"neighbours are at round {target}; skipping from {self.round}"
-                        f"{', taking their mean model' if adopt else ''}")
-        self.round = target
-        # Neighbours already at `target` are waiting for our round-`target` snapshot: send our
-        # current theta as such at once, or they time out and the swarm stays out of phase.
-        self._publish_theta(target)
-        return dict(sorted(items.items()))
+        self.round = move.to_round
+        self._moves.append({"kind": move.kind, "from": move.from_round, "to": move.to_round,
+                            "adopted": list(move.adopted)})
+        # Neighbours already at the target are waiting for our snapshot of it: send our current
+        # theta as such at once, or they time out and the swarm stays out of phase.
+        self._publish_theta(move.to_round)
+        return move.heard
