@@ -77,9 +77,9 @@ class DaemonConfig:
     # its own is stale, and C-ADMM would pull the neighbours back towards it. 0 = keep its own.
     adopt_after_rounds: int = 2
     resend_delay_s: float = 1.0  # re-push our snapshot this long after a neighbour's link appears
-    # A neighbour's claimed round counts only as far as its pace explains: one round per this
-    # fraction of our own fastest recent round (protocol.evidence.ClaimPace). Robots may differ in speed.
-    pace_margin: float = 4.0
+    # A neighbour's claimed round counts only as far as its pace explains: one round per our own
+    # fastest recent round divided by this (protocol.evidence.ClaimPace). Robots may differ in speed.
+    pace_margin: float = 2.0
     refused_after: int = 3  # a neighbour whose snapshots were refused this many rounds in a row is not waited for
     # Initial relative pose: "identity" (the paper) or "coarse": match compact keyframe summaries
     # (descriptors + 3-D points, never images) with neighbours whose pose is already known.
@@ -209,11 +209,11 @@ class Daemon:
         self._model_changed()
         self._last_heard: dict[int, ThetaSnapshot] = {}
         self._round_compute_s: float | None = None  # our last round's training time: may we train through a gap?
-        self._recent_compute_s: list[float] = []  # the last rounds' training times: the pace a neighbour may keep
+        self._recent_round_s: list[float] = []  # the last rounds' durations: the pace a neighbour may keep
         self._moves: list[dict] = []  # joins and skips of this process, for done.json
         self.rejoin = Rejoin(RejoinPolicy(training.rounds, cfg.adopt_after_rounds, cfg.round_timeout_s,
                                           cfg.heartbeat_s), self.trainer, self.exchange, self.mailbox, self.report,
-                             self._stop, self._consensus_peers, self._in_consensus, self._claimed_round)
+                             self._stop, self._consensus_peers, self._in_consensus, self._raw_claim)
         consensus = self.trainer.consensus
         self.vigilance = Vigilance(self.report, self.pace, self.exchange.refusals,
                                    consensus.clipper if consensus is not None else None)
@@ -235,6 +235,11 @@ class Daemon:
         """The round neighbour j says, in its newest heartbeat, that it has completed, as far as
         its pace explains it (``protocol.evidence.ClaimPace``)."""
         return self.pace.credible(j)
+
+    def _raw_claim(self, j: int) -> int | None:
+        """j's claimed round as it says it, for the join's quorum (a lone far claim moves nothing there)."""
+        status = self.board.peers().get(j)
+        return None if status is None else status.round
 
     def _in_consensus(self) -> bool:
         """Whether this robot's frame is placed (reference, identity by configuration, coarse)."""
@@ -387,6 +392,7 @@ class Daemon:
                 self._moves.append({"kind": move.kind, "from": move.from_round, "to": move.to_round,
                                     "adopted": list(move.adopted)})
             self._apply_reference()
+            self.vigilance.armed = True
             self.report.event("start", resumed=resumed, alive=sorted(self.membership.alive),
                               reference=self.membership.reference)
             self.rounds_report.start()
@@ -436,8 +442,8 @@ class Daemon:
         self.trainer.end_round(to_torch(heard if aligned else {}), own=self._as_received(self.round))
         if (consensus := self.trainer.consensus) is not None:
             self.vigilance.consensus_news(consensus.news, self.round)
-        self._recent_compute_s = (self._recent_compute_s + [t_compute])[-8:]
-        self.pace.min_round_s = min(self._recent_compute_s) / self.cfg.pace_margin
+        self._recent_round_s = (self._recent_round_s + [time.monotonic() - t0])[-8:]
+        self.pace.min_round_s = min(self._recent_round_s) / self.cfg.pace_margin
         heard = self._catch_up(heard)
         self.mailbox.advance(self.round)  # slide the window: keeps accepting up to round + max_ahead
         if not aligned:

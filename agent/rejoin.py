@@ -3,8 +3,8 @@ restart), and catching up with neighbours that went on without it (it was frozen
 
 Only a quorum of neighbours moves a robot's round (``protocol.evidence.quorum_round``: the round
 a strict majority has reached, never the furthest claim), never past ``training.rounds``, and
-during a run never faster than the neighbours' paces explain (the daemon's claimed rounds are
-``ClaimPace``-bounded). A robot that moves two or more rounds takes the coordinate-wise median of
+during a run never faster than the neighbours' paces explain (the rounds the exchange credits
+them with are ``ClaimPace``-bounded; at start there is no pace yet, only the quorum). A robot that moves two or more rounds takes the coordinate-wise median of
 the models there (``agent.robust.coordinate_median``, its own voting when they are even in
 number), not their mean: one forged model cannot set it. When the robot keeps its own model (an
 unaligned robot; ``daemon.adopt_after_rounds = 0``) it never jumps onto the last round: that
@@ -67,8 +67,8 @@ class Rejoin:
                  mailbox: Mailbox[ThetaSnapshot], report: Reporter, stop: threading.Event,
                  peers: Callable[[], set[int]], in_consensus: Callable[[], bool],
                  claimed_round: Callable[[int], int | None]) -> None:
-        """peers(): the reachable neighbours in consensus; claimed_round(j): j's round as far as
-        its pace explains it."""
+        """peers(): the reachable neighbours in consensus; claimed_round(j): the round j says it
+        has completed (the join's evidence; during a run, the exchange's paced rounds decide)."""
         self.policy, self.trainer, self.exchange, self.mailbox, self.report = policy, trainer, exchange, mailbox, report
         self._stop, self.peers, self.in_consensus, self.claimed_round = stop, peers, in_consensus, claimed_round
 

@@ -27,10 +27,12 @@ class Vigilance:
         self.report, self.pace, self.refusals, self.clipper = report, pace, refusals, clipper
         self._lock = threading.Lock()
         self._ahead: set[int] = set()
+        self.armed = False  # set once the robot has joined: claims ahead of it are suspicious from then on
 
     def heard_claim(self, j: int, claim: int, now: float, own_round: int) -> None:
-        """A heartbeat of j's (from the network's thread): pace its claim, say when it outruns it."""
-        ahead = self.pace.observe(j, claim, now, believed_up_to=own_round + 1)
+        """A heartbeat of j's (from the network's thread): pace its claim, say when it outruns it
+        (once armed: before the robot joined, its neighbours are ahead of it by right)."""
+        ahead = self.pace.observe(j, claim, now, own_round) and self.armed
         with self._lock:
             started, ended = ahead and j not in self._ahead, not ahead and j in self._ahead
             (self._ahead.add if ahead else self._ahead.discard)(j)

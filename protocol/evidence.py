@@ -6,10 +6,11 @@ ahead. The evidence for "ahead" is what neighbours say of themselves, so one nei
 
 - :class:`ClaimPace`: a neighbour's claimed round counts only as far as its pace explains. Each
   neighbour earns one round of credit per ``min_round_s`` of our clock (the fastest a round can
-  be trained here, from our own measured rounds), holds at most ``burst`` rounds of credit while
-  it keeps talking, and spends one per round it claims to advance. A silence earns credit for
-  the whole silence (a neighbour we could not hear may well have trained meanwhile). A claim past
-  its credit is cut to what the credit explains, and the neighbour is flagged.
+  run here, from our own measured rounds), holds at most ``burst`` rounds of credit while it
+  keeps talking, and spends one per round it claims to advance past one beyond ours. A silence
+  earns credit for the whole silence (a neighbour we could not hear may well have trained
+  meanwhile). A claim past its credit is cut to what the credit explains, and the neighbour is
+  flagged.
 - :func:`quorum_round`: the round a strict majority of the neighbours has reached (the k-th
   largest, k = n // 2 + 1), never the maximum.
 - :func:`plan_catch_up`: train through a short gap or skip a long one, to the quorum's round.
@@ -48,23 +49,34 @@ class ClaimPace:
         self._lock = threading.Lock()
         self._peers: dict[int, _Credit] = {}
 
-    def observe(self, j: int, claim: int, now: float, believed_up_to: int = -1) -> bool:
-        """j says it has completed round ``claim`` (heard at ``now``). True when this claim runs
-        ahead of what j's pace explains (and was cut to it). A claim up to ``believed_up_to``
-        (one past our own round: no claim there can move us) is believed as it is: a neighbour
-        that skipped to our round after a freeze is no liar."""
+    def observe(self, j: int, claim: int, now: float, own_round: int) -> bool:
+        """j says it has completed round ``claim`` (heard at ``now``; we are at ``own_round``).
+        True when the claim runs ahead of what j's pace explains (and was cut to it).
+
+        A claim up to one past our own round is believed as it is: no such claim can move us,
+        and a neighbour that skipped to our round after a freeze is no liar. Beyond that, a
+        first claim is believed up to there, and the rest must be earned by pace; without a
+        measured round of ours (``min_round_s`` None) nothing more is believed. (Joining at
+        start does not pace: it takes the quorum of the raw claims.)"""
+        floor = own_round + 1
         with self._lock:
             peer = self._peers.get(j)
-            if peer is None or claim < peer.round or self.min_round_s is None or claim <= believed_up_to:
-                # first heard, gone back (a restart from an older checkpoint), nothing to pace by yet, or harmless
-                credit = self.burst if peer is None else min(peer.credit, self.burst)
-                self._peers[j] = _Credit(claim, claim, now, credit)
+            if peer is None:
+                self._peers[j] = _Credit(min(claim, floor), claim, now, self.burst)
+                return claim > floor
+            if claim <= max(floor, peer.round):  # harmless, or not ahead of what we believe
+                peer.round, peer.claim, peer.at = claim, claim, now
+                peer.credit = min(peer.credit, self.burst)
                 return False
+            peer.round = max(peer.round, floor)
+            if self.min_round_s is None:
+                peer.claim, peer.at = claim, now
+                return True
             peer.credit = min(peer.credit, self.burst) + max(now - peer.at, 0.0) / self.min_round_s
-            peer.at, peer.claim = now, claim
             step = min(claim - peer.round, math.floor(peer.credit))
             peer.round += step
             peer.credit -= step
+            peer.claim, peer.at = claim, now
             return peer.round < claim
 
     def credible(self, j: int) -> int | None:

@@ -39,3 +39,34 @@ def test_the_quorum_is_a_strict_majority():
     assert quorum_round([3, 9, 1000]) == 9
     assert quorum_round([3, 5, 9, 1000]) == 5  # three of four are at 5 or later
     assert quorum_round([1, 2, 1000, 1000, 1000]) == 1000
+
+
+def test_a_claim_counts_only_as_far_as_its_pace_explains():
+    from protocol.evidence import ClaimPace
+
+    pace = ClaimPace(burst=2)
+    assert not pace.observe(2, 1, now=0.0, own_round=0)  # one past ours: believed as it is
+    assert pace.observe(3, 8, now=0.0, own_round=0) and pace.credible(3) == 1  # a first far claim: up to ours + 1
+    assert pace.observe(3, 8, now=5.0, own_round=0) and pace.credible(3) == 1  # no round of ours measured: no more
+    pace.min_round_s = 1.0
+    assert pace.observe(3, 8, now=6.0, own_round=0) and pace.credible(3) == 4  # 2 of burst + 1 s: 3 rounds more
+    assert pace.observe(3, 8, now=6.5, own_round=0) and pace.credible(3) == 4
+    assert not pace.observe(3, 8, now=12.0, own_round=0) and pace.credible(3) == 8  # a silence earns its rounds
+    assert pace.ahead_of_pace() == {}
+    assert not pace.observe(3, 2, now=12.5, own_round=0) and pace.credible(3) == 2  # back: a restart
+    assert not pace.observe(2, 6, now=13.0, own_round=5)  # it skipped to our round after a freeze: no liar
+
+
+def test_a_neighbour_whose_snapshots_are_refused_stops_holding_the_barrier():
+    from protocol.evidence import RefusalStreaks
+
+    streaks = RefusalStreaks(after=3)
+    assert not streaks.not_awaited(3, 1)
+    streaks.refused(3, 1)  # its round-1 snapshot held NaN: its answer for round 1, and bad
+    assert streaks.not_awaited(3, 1) and not streaks.not_awaited(3, 2)
+    reached = [streaks.barrier_ended(1, delivered=[2], awaited=[2, 3])]
+    for k in (2, 3):
+        streaks.refused(3, k)
+        reached.append(streaks.barrier_ended(k, delivered=[2], awaited=[2, 3]))
+    assert reached == [[], [], [3]] and streaks.not_awaited(3, 4)  # not waited for before it sends anything
+    assert streaks.barrier_ended(4, delivered=[2, 3], awaited=[2]) == [] and not streaks.not_awaited(3, 5)
