@@ -74,14 +74,19 @@ class Rejoin:
 
     # ------------------------------------------------------------------ at start
     def join(self, round_index: int) -> Move | None:
-        """Fetch the neighbours' newest snapshots (each only up to the round its sender's own
-        heartbeat claims) and move to the round a quorum of them has reached. A neighbour without
-        a snapshot counts as at our round: one answer, forged or not, moves nothing alone."""
+        """Move to the round a quorum of the neighbours has reached, with their models there.
+
+        First the quorum of their claimed rounds (a neighbour that has said nothing counts as at
+        ours); then each one's newest snapshot up to that round and its own claim; then the
+        quorum of the snapshots' rounds. One claim or answer, forged or not, moves nothing alone,
+        and a snapshot past the claims' quorum is never fetched: taken in, it would become that
+        neighbour's base, and none of its real deltas would fit it again."""
+        claims = {j: self._wait_for_claim(j) for j in sorted(self.peers())}
+        bound = max(round_index, quorum_round(round_index if c is None else c for c in claims.values()) or 0)
         newest: dict[int, ThetaSnapshot] = {}
         evidence: dict[int, int] = {}
-        for j in sorted(self.peers()):
-            claim = self._wait_for_claim(j)
-            msg = None if claim is None else self.exchange.fetch_latest(j, at_most=claim)
+        for j, claim in claims.items():
+            msg = None if claim is None else self.exchange.fetch_latest(j, at_most=min(claim, bound))
             if msg is not None:
                 newest[j] = msg
             evidence[j] = msg.round if msg is not None else round_index

@@ -95,6 +95,7 @@ class NeighbourClipper:
         self.quarantined: set[int] = set()
         self._told: set[int] = set()  # reported in their current streak
         self.factors: dict[int, float] = {}  # last round: neighbour -> smallest clip factor (1.0: not clipped)
+        self.clipped_count = 0  # (neighbour, round) pairs clipped so far in this process (benchmarks count them)
 
     # --- the bound --------------------------------------------------------------------------
     def _base(self, own: Sequence[Tensor], movement: list[float] | None) -> list[float]:
@@ -163,6 +164,7 @@ class NeighbourClipper:
         clipped, self.factors = {}, {}
         for j, theirs in neighbours.items():
             clipped[j], self.factors[j] = self._clip(own, theirs, dist[j], tau, for_dual=True)
+            self.clipped_count += self.factors[j] < 1.0
         self._remember_normal(votes, base, movement)
         news = self._update_streaks(sorted(neighbours))
         return {j: t for j, t in clipped.items() if j not in self.quarantined}, news

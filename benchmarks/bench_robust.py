@@ -13,9 +13,10 @@ neighbour was clipped. ``--robust both`` also runs every attack with robust cons
 processes on loopback; the hostile one is the real daemon with one change
 (``tests/system/hostile.py``): ``future`` heartbeats the swarm's last round and answers every
 ``latest`` query with a forged model of that round; ``nan`` pushes NaN snapshots while heartbeating.
-The baseline is the same swarm with that robot ``mute`` (token held, nothing sent). Figures:
-rounds trained per honest robot, early ``done.json``, seconds per round, honest PSNR against
-the mute run.
+The baseline is the same swarm with that robot ``silent`` (it trains, so the CPU is shared as
+in the attacks, but sends nothing and holds its token); ``mute`` (tests/system/mute.py) holds
+only a token. Figures: rounds trained per honest robot, early ``done.json``, seconds per round,
+honest PSNR against the silent run.
 
     nice .venv/bin/python benchmarks/bench_robust.py --part poison --robots 3 --topology full
     nice .venv/bin/python benchmarks/bench_robust.py --part poison --robots 5 --topology ring
@@ -167,6 +168,100 @@ def part_poison(args) -> dict:
     return {"runs": runs}
 
 
+def _daemon_training(args) -> dict:
+    """The quickstart's training section (scenarios/quickstart), as the swarm file holds it."""
+    return {"rounds": args.rounds, "steps_per_round": args.steps, "seed": args.seed, "own_holdout_every": 0,
+            "consensus": {"rho0": args.rho},
+            "train": {"rays_per_step": 1024, "field": {"density_hidden": 32, "color_hidden": 32,
+                                                       "grid": {"log2_hashmap_size": 14, "num_levels": 12,
+                                                                "max_resolution": 256}},
+                      "occupancy": {"resolution": 48, "warmup_steps": 64, "update_every": 16}}}
+
+
+def run_daemons(attack: str, args, tmp: Path, ev: EvalSet) -> dict:
+    """One real swarm with its highest robot ``mute`` or hostile (tests/system/hostile.py)."""
+    import subprocess
+
+    from agent.checkpoint import load_for_eval
+    from tests.system.harness import make_swarm
+
+    views, width = _procedural_size(args.data)
+    swarm = make_swarm(tmp / attack.replace("+", "_"), robots=args.robots, topology=args.topology,
+                       training=_daemon_training(args), daemon={"round_timeout_s": args.round_timeout, "eval_every": 0},
+                       views=views, width=width, overlap=args.overlap, seed=args.seed)
+    hostile = max(swarm.robots)
+    honest = [i for i in swarm.robots if i != hostile]
+    mute = None
+    t0 = time.monotonic()
+    try:
+        if attack == "mute":
+            mute = subprocess.Popen([sys.executable, str(REPO / "tests/system/mute.py"), str(swarm.swarm_file),
+                                     str(hostile), "3600"], cwd=REPO, stdout=subprocess.PIPE, text=True)
+            assert mute.stdout.readline().strip() == "ready"
+        for i in honest:
+            swarm.start(i)
+        if attack != "mute":
+            swarm.start(hostile, hostile=attack)
+        swarm.wait_all(honest, timeout=args.daemon_timeout)
+    finally:
+        wall = time.monotonic() - t0
+        if mute is not None:
+            mute.kill()
+        swarm.stop()
+    per_robot = {}
+    for i in honest:
+        tel, done = swarm.telemetry(i), swarm.done(i)
+        named = [t.round for t in tel if hostile in t.suspects]
+        trainer = load_for_eval(swarm.run_dir(i), swarm.root / f"robot{i}")
+        s = evaluate_robot(trainer, ev, i).summary()
+        per_robot[i] = {"psnr": s["psnr"], "psnr_others_only": s["psnr_others_only"],
+                        "rounds_trained": sum(1 for t in tel if t.steps == args.steps), "done": done,
+                        "round_s": statistics.fmean(b.monotonic - a.monotonic for a, b in zip(tel, tel[1:])),
+                        "max_wait_s": max(t.seconds_wait for t in tel), "named_round": named[0] if named else None,
+                        "suspects": tel[-1].suspects}
+    return {"attack": attack, "wall_s": wall, "robots": per_robot,
+            "psnr": statistics.fmean(r["psnr"] for r in per_robot.values()),
+            "psnr_others": statistics.fmean(r["psnr_others_only"] for r in per_robot.values()),
+            "round_s": statistics.fmean(r["round_s"] for r in per_robot.values())}
+
+
+def _procedural_size(data: str) -> tuple[int, int]:
+    """views and width of a ``procedural:views=V,width=W`` source (the daemons' harness makes its own)."""
+    fields = dict(item.split("=") for item in data.partition(":")[2].split(",") if "=" in item)
+    if not data.startswith("procedural:") or set(fields) - {"views", "width"}:
+        raise SystemExit("--part daemons runs on the procedural scene: --data procedural:views=V,width=W")
+    return int(fields.get("views", 60)), int(fields.get("width", 48))
+
+
+def part_daemons(args) -> dict:
+    import tempfile
+
+    views, width = _procedural_size(args.data)
+    split = split_views(load_views(f"procedural:views={views},width={width}"),
+                        SplitConfig(robots=args.robots, overlap=args.overlap, frame="world", seed=args.seed))
+    ev = EvalSet.from_split(split)  # the harness splits exactly so
+    print(f"{args.data}: {args.robots} real robots on a {args.topology}, the highest one mute or hostile; "
+          f"{args.rounds} rounds x {args.steps} steps, round timeout {args.round_timeout} s; "
+          f"{len(ev.views)} held-out views", flush=True)
+    runs = []
+    with tempfile.TemporaryDirectory(prefix="bench-robust-") as tmp:
+        for attack in args.daemon_attacks.split(","):
+            r = run_daemons(attack, args, Path(tmp), ev)
+            runs.append(r)
+            print(f"  {attack:10s} honest PSNR {r['psnr']:.2f} / {r['psnr_others']:.2f} dB, round {r['round_s']:.2f} s, "
+                  f"wall {r['wall_s']:.0f} s; " + "; ".join(
+                      f"robot {i}: {x['rounds_trained']} rounds trained, done {x['done'] and x['done']['rounds']} "
+                      f"moves {x['done'] and x['done'].get('moves')}, max wait {x['max_wait_s']:.1f} s, named at "
+                      f"round {x['named_round']} {x['suspects']}" for i, x in r["robots"].items()), flush=True)
+    base = next((r for r in runs if r["attack"] == "silent"), None)
+    print("\nsummary (honest robots' mean PSNR all / others-only; against the silent-robot run; round time):")
+    for r in runs:
+        vs = "" if base is None else (f"  {r['psnr'] - base['psnr']:+.2f} / {r['psnr_others'] - base['psnr_others']:+.2f}"
+                                      f" dB, rounds {r['round_s'] / base['round_s']:.2f}x the silent run's")
+        print(f"  {r['attack']:10s} {r['psnr']:.2f} / {r['psnr_others']:.2f} dB, {r['round_s']:.2f} s a round{vs}")
+    return {"runs": runs}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--part", choices=["poison", "daemons"], default="poison")
@@ -183,6 +278,9 @@ def main() -> None:
     ap.add_argument("--attack-from", type=int, default=1, help="the first round whose model is forged")
     ap.add_argument("--hostile", type=int, default=None, help="the hostile robot (default: the highest id)")
     ap.add_argument("--robust", choices=["on", "off", "both"], default="on")
+    ap.add_argument("--daemon-attacks", default="silent,future,nan", help="--part daemons: mute, or hostile.py attacks")
+    ap.add_argument("--round-timeout", type=float, default=20.0, help="--part daemons: daemon.round_timeout_s")
+    ap.add_argument("--daemon-timeout", type=float, default=1800.0, help="--part daemons: give up on a run after this")
     ap.add_argument("--set", action="append", default=[], help="TrainConfig override, e.g. rays_per_step=512")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
@@ -192,6 +290,8 @@ def main() -> None:
     results = {"args": {k: str(v) for k, v in vars(args).items()}}
     if args.part == "poison":
         results["poison"] = part_poison(args)
+    else:
+        results["daemons"] = part_daemons(args)
     if args.json:
         args.json.write_text(json.dumps(results, indent=2, default=str) + "\n")
 

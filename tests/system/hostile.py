@@ -12,7 +12,9 @@ buggy code. ATTACK, or several joined by ``+``:
 - ``huge`` / ``minus_ten`` / ``replay`` / ``noise``: from round ``HOSTILE_FROM`` (1) on, it sends as
   its own model 1e30 everywhere / -10 times its model / its model of that first round, every
   round / Gaussian noise of each tensor's RMS;
-- ``poison``: one of those per round, in that order, then ``replay`` to the end.
+- ``poison``: one of those per round, in that order, then ``replay`` to the end;
+- ``silent`` (a baseline, not an attack): it trains but sends nothing, neither snapshots nor
+  heartbeats, and holds its liveliness token (a robot whose link died with its token alive).
 
 Its forged snapshots are plain float32 frames (a robot may send those whatever the swarm's
 compression is; a 1e30 model has no deltas).
@@ -31,7 +33,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 POISONS = ("huge", "minus_ten", "noise", "replay")
-ATTACKS = ("future", "nan", *POISONS, "poison")
+ATTACKS = ("future", "nan", *POISONS, "poison", "silent")
 HOSTILE_FROM = int(os.environ.get("HOSTILE_FROM", "1"))  # the first round whose snapshot is forged
 
 
@@ -88,6 +90,8 @@ def install(attacks: list[str]) -> None:
 
     def publish(self, round_index: int) -> None:
         theta = daemon_module._to_numpy(self.trainer.theta())
+        if "silent" in attacks:
+            return
         if "nan" in attacks:
             _push(self, round_index, _nan_frame(self, round_index, theta))
         elif poison and round_index >= HOSTILE_FROM:
@@ -104,6 +108,10 @@ def install(attacks: list[str]) -> None:
 
     Daemon._publish_theta = publish
     Daemon._status_message = status
+    if "silent" in attacks:
+        from protocol.presence import Presence
+
+        Presence._heartbeat = lambda self: None  # the heartbeat thread ends at once
 
 
 def main(argv: list[str]) -> None:
