@@ -79,12 +79,16 @@ def _push(daemon, round_index: int, frame: bytes) -> None:
     daemon.net.set_latest(frame, round=round_index)
 
 
-def install(attacks: list[str]) -> None:
-    """Replace the daemon's methods for ``attacks``."""
+def install(attacks: list[str], robot=None) -> None:
+    """Replace the daemon's methods for ``attacks``: of the class (this process runs one robot),
+    or of one ``robot`` (a Daemon of an in-process swarm, tests/system/test_loopback.py)."""
+    import types
+
     from agent import daemon as daemon_module
 
     Daemon = daemon_module.Daemon
-    honest_publish, honest_status = Daemon._publish_theta, Daemon._status_message
+    honest_publish, honest_status, honest_model_changed = Daemon._publish_theta, Daemon._status_message, \
+        Daemon._model_changed
     memory: dict = {}
     poison = [a for a in attacks if a in (*POISONS, "poison")]
 
@@ -106,8 +110,21 @@ def install(attacks: list[str]) -> None:
         msg = honest_status(self)
         return dataclasses.replace(msg, round=self.training.rounds) if "future" in attacks else msg
 
+    def serve_forgery(self) -> None:  # from the start, before any snapshot: a joiner finds it at once
+        honest_model_changed(self)
+        if "future" in attacks and self.exchange.expect is not None:
+            theta = daemon_module._to_numpy(self.trainer.theta())
+            self.net.set_latest(_frame(self, self.training.rounds, {n: -10 * a for n, a in theta.items()}),
+                                round=self.training.rounds)
+
+    if robot is not None:
+        robot._publish_theta = types.MethodType(publish, robot)
+        robot.presence._status = types.MethodType(status, robot)  # the heartbeat holds the bound method
+        serve_forgery(robot)
+        return
     Daemon._publish_theta = publish
     Daemon._status_message = status
+    Daemon._model_changed = serve_forgery
     if "silent" in attacks:
         from protocol.presence import Presence
 
