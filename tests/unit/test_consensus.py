@@ -72,28 +72,32 @@ def _least_squares_problem(n_robots, dim, rows, seed):
     return a, b, x_star
 
 
+def newton_step(cons: Consensus, x: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> None:
+    """The exact primal step of ``||a x - b||^2`` + the consensus terms (quadratic: one Newton
+    step with the gradient from ``add_penalty_grad`` and the Hessian ``2 a^T a + 2 rho n I``)."""
+    x.grad = None
+    ((a @ x - b) ** 2).sum().backward()
+    cons.add_penalty_grad([x])
+    hessian = 2 * a.T @ a + 2 * cons.rho * cons.num_neighbours * torch.eye(len(x), dtype=x.dtype)
+    with torch.no_grad():
+        x -= torch.linalg.solve(hessian, x.grad)
+
+
 def test_distributed_least_squares_on_a_ring_of_5_reaches_the_centralised_optimum():
     """Each robot sees only its rows, too few to determine x alone (rows < dim).
 
-    The primal step is exact: the objective is quadratic, so one Newton step with the gradient
-    from ``add_penalty_grad`` and the Hessian ``2 A^T A + 2 rho n I`` minimises it.
+    The primal step is exact (:func:`newton_step`).
     """
     n, dim = 5, 8
     a, b, x_star = _least_squares_problem(n, dim, rows=4, seed=1)
     topo = Topology.from_spec("ring", list(range(n)))
     xs = [torch.zeros(dim, dtype=torch.float64, requires_grad=True) for _ in range(n)]
     cons = [Consensus([x], _plain(rho0=1.0)) for x in xs]
-    eye = torch.eye(dim, dtype=torch.float64)
     for k in range(300):
         snapshot = [x.detach().clone() for x in xs]
         for i in range(n):
             cons[i].begin_round(k, [snapshot[i]], {j: [snapshot[j]] for j in topo.neighbours(i)})
-            xs[i].grad = None
-            ((a[i] @ xs[i] - b[i]) ** 2).sum().backward()
-            cons[i].add_penalty_grad([xs[i]])
-            hessian = 2 * a[i].T @ a[i] + 2 * cons[i].rho * cons[i].num_neighbours * eye
-            with torch.no_grad():
-                xs[i] -= torch.linalg.solve(hessian, xs[i].grad)
+            newton_step(cons[i], xs[i], a[i], b[i])
         new = [x.detach().clone() for x in xs]
         for i in range(n):
             cons[i].dual_update([new[i]], {j: [new[j]] for j in topo.neighbours(i)})

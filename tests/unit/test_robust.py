@@ -9,6 +9,7 @@ import torch
 from agent.consensus import Consensus, ConsensusConfig
 from agent.robust import NeighbourClipper, RobustConfig, coordinate_median
 from protocol.membership import Topology
+from tests.unit.test_consensus import newton_step
 
 N, DIM = 5, 8
 HOSTILE = 0
@@ -49,7 +50,6 @@ def _run(attack: str | None, robust: bool = True, rounds: int = 300, honest_star
     xs = [x0.clone().requires_grad_(True) for _ in range(N)]
     cfg = ConsensusConfig(rho0=1.0, robust=RobustConfig(enabled=robust))
     cons = [Consensus([x], cfg) for x in xs]
-    eye = torch.eye(DIM, dtype=torch.float64)
     g = torch.Generator().manual_seed(7)
     first = None
     news = []
@@ -63,12 +63,7 @@ def _run(attack: str | None, robust: bool = True, rounds: int = 300, honest_star
     for k in range(rounds):
         for i in range(N):
             cons[i].begin_round(k, [xs[i].detach().clone()], {j: [shared[j]] for j in topo.neighbours(i)})
-            xs[i].grad = None
-            ((a[i] @ xs[i] - b[i]) ** 2).sum().backward()
-            cons[i].add_penalty_grad([xs[i]])
-            hessian = 2 * a[i].T @ a[i] + 2 * cons[i].rho * cons[i].num_neighbours * eye
-            with torch.no_grad():
-                xs[i] -= torch.linalg.solve(hessian, xs[i].grad)
+            newton_step(cons[i], xs[i], a[i], b[i])
         if first is None:
             first = xs[HOSTILE].detach().clone()
         shared = [sent(i, x.detach().clone(), k) for i, x in enumerate(xs)]
