@@ -140,11 +140,12 @@ class Consensus:
         return total
 
     @torch.no_grad()
-    def dual_update(self, own: Sequence[Tensor], neighbours: Mapping[int, Sequence[Tensor]]) -> None:
+    def dual_update(self, own: Sequence[Tensor], neighbours: Mapping[int, Sequence[Tensor]],
+                    rounds: Mapping[int, int] | None = None) -> None:
         """``y_ij += rho_k (theta_i^{k+1} - theta_j^{k+1})`` for the neighbours heard (the next
         round's ``begin_round`` sums them), each theta_j clipped first; a neighbour quarantined
-        now loses its edge dual."""
-        neighbours, self.news = self.clipper.observe(own, neighbours)
+        now loses its edge dual. ``rounds``: each snapshot's round (NeighbourClipper.observe)."""
+        neighbours, self.news = self.clipper.observe(own, neighbours, rounds)
         for news in self.news:
             if news.kind == "quarantined":
                 self.edge_duals.pop(news.neighbour, None)

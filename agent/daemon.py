@@ -439,7 +439,8 @@ class Daemon:
         self.presence.beat_now()
         heard, waited = self._barrier()  # unaligned: for the pace only
         self._apply_reference()  # a failover seen while waiting takes effect now, not next round
-        self.trainer.end_round(to_torch(heard if aligned else {}), own=self._as_received(self.round))
+        self.trainer.end_round(to_torch(heard if aligned else {}), own=self._as_received(self.round),
+                               rounds={j: m.round for j, m in heard.items()})
         if (consensus := self.trainer.consensus) is not None:
             self.vigilance.consensus_news(consensus.news, self.round)
         self._recent_round_s = (self._recent_round_s + [time.monotonic() - t0])[-8:]

@@ -23,8 +23,14 @@ Nothing changes without an attack: an honest neighbour within the bound enters e
 before (the same tensors, bit for bit), so the figures of every honest run stay what they were.
 Both ends of an honest edge clip nothing, so their duals stay exactly opposite (y_ij = -y_ji).
 
-**Reporting and quarantine.** A neighbour clipped ``report_after`` rounds in a row, or once
-grossly (further than ``clip_factor`` times the bound), is reported. With at least two
+**A model that does not move like a training robot's.** A model inside the normal disagreement
+cannot be told from an honest one by where it is, but by how it moves: an honest neighbour's
+model moves from one round to the next about as much as the robot's own (0.82-1.22 times on the
+tests' scene, 0.93-1.07 on the quickstart's); a replayed old model does not move at all, noise
+jumps every round. One whose movement is outside ``move_band`` (4) of ours is erratic.
+
+**Reporting and quarantine.** A neighbour clipped or erratic ``report_after`` rounds in a row, or
+clipped once grossly (further than ``clip_factor`` times the bound), is reported. With at least two
 neighbours, one of which is within the bound (the vote says the normal is not what this one
 shows), it is also quarantined (``quarantine``): out of the anchors and duals, its edge dual
 dropped, not waited for by the barrier. Its snapshots are still measured; within the
@@ -59,19 +65,24 @@ class RobustConfig:
     clip_factor: float = 4.0  # a model may lie this many times the normal disagreement away, per tensor
     window: int = 4  # rounds of normal disagreement remembered (honest disagreement swings ~5x round to round)
     floor: float = 1e-3  # the least normal disagreement, relative to the tensor's norm (no history yet)
-    report_after: int = 3  # rounds in a row clipped before a neighbour is reported (and quarantined)
+    # A neighbour's model must move, from one round to the next, between 1/move_band and move_band
+    # times what this robot's did (honest robots: 0.82-1.22 on the tests' scene, 0.93-1.07 on the
+    # quickstart's): a replayed model does not move at all, noise jumps every round.
+    move_band: float = 4.0
+    report_after: int = 3  # rounds in a row clipped or erratic before a neighbour is reported (and quarantined)
     quarantine: bool = True  # ... left out of consensus, with at least two neighbours to vote
     readmit_after: int = 3  # rounds in a row within the bound before a quarantined neighbour comes back
 
     def __post_init__(self) -> None:
-        check(self, clip_factor="> 1", window=">= 1", floor="> 0", report_after=">= 1", readmit_after=">= 1")
+        check(self, clip_factor="> 1", window=">= 1", floor="> 0", move_band="> 1", report_after=">= 1",
+              readmit_after=">= 1")
 
 
 @dataclass(frozen=True)
 class ClipNews:
     """Something an operator should hear about a neighbour (the daemon logs it and writes an event)."""
 
-    kind: str  # "clipped_neighbour" | "quarantined" | "readmitted"
+    kind: str  # "clipped_neighbour" | "erratic_neighbour" | "quarantined" | "readmitted"
     neighbour: int
     rounds: int  # rounds in a row that led to it
     factor: float  # the smallest clip factor over its tensors this round (1.0: within bound)
@@ -90,7 +101,9 @@ class NeighbourClipper:
         self._normal: deque[list[float]] = deque(maxlen=cfg.window)  # per round, per tensor
         self._tau: list[float] | None = None  # the bound of the last observed round
         self._prev_own: list[Tensor] | None = None
-        self.streak: dict[int, int] = {}  # neighbour -> rounds in a row clipped
+        self.streak: dict[int, int] = {}  # neighbour -> rounds in a row clipped or erratic
+        self.reason: dict[int, str] = {}  # neighbour -> "clipped" | "erratic": its last anomaly
+        self._seen: dict[int, tuple[int | None, list[Tensor]]] = {}  # at the last observation: round, model
         self.calm: dict[int, int] = {}  # quarantined neighbour -> rounds in a row within the bound
         self.quarantined: set[int] = set()
         self._told: set[int] = set()  # reported in their current streak
@@ -148,11 +161,13 @@ class NeighbourClipper:
         return {j: self._clip(own, t, dist[j], tau, for_dual=False)[0] for j, t in used.items()}
 
     @torch.no_grad()
-    def observe(self, own: Sequence[Tensor], neighbours: Mapping[int, Sequence[Tensor]]
-                ) -> tuple[dict[int, list[Tensor]], list[ClipNews]]:
+    def observe(self, own: Sequence[Tensor], neighbours: Mapping[int, Sequence[Tensor]],
+                rounds: Mapping[int, int] | None = None) -> tuple[dict[int, list[Tensor]], list[ClipNews]]:
         """The round's new models (theta_j^{k+1}, for the dual update): clipped, the normal
         disagreement, the streaks and the quarantine updated. Returns the models to use (the
-        quarantined left out) and the news."""
+        quarantined left out) and the news. ``rounds``: the round of each neighbour's snapshot
+        (a model's movement is judged only from one round of it to the next; None: every
+        observation is the next round's)."""
         if not self.cfg.enabled:
             return {j: list(t) for j, t in neighbours.items()}, []
         own = [o.detach() for o in own]
@@ -165,9 +180,29 @@ class NeighbourClipper:
         for j, theirs in neighbours.items():
             clipped[j], self.factors[j] = self._clip(own, theirs, dist[j], tau, for_dual=True)
             self.clipped_count += self.factors[j] < 1.0
+        erratic = self._erratic(neighbours, movement, rounds)
         self._remember_normal(votes, base, movement)
-        news = self._update_streaks(sorted(neighbours))
+        news = self._update_streaks(sorted(neighbours), erratic)
         return {j: t for j, t in clipped.items() if j not in self.quarantined}, news
+
+    def _erratic(self, neighbours: Mapping[int, Sequence[Tensor]], movement: list[float] | None,
+                 rounds: Mapping[int, int] | None) -> set[int]:
+        """Neighbours whose model moved, from its round heard at the last observation to the
+        next, outside ``move_band`` of our own movement in the round. (A snapshot that stands in
+        for a later round again, while we train through a gap, is no movement to judge.)"""
+        ours = None if movement is None else sum(m * m for m in movement) ** 0.5
+        erratic = set()
+        for j, theirs in neighbours.items():
+            seen = self._seen.get(j)
+            now = None if rounds is None else rounds.get(j)
+            if seen is None or not ours or (now is not None and seen[0] is not None and now != seen[0] + 1):
+                continue
+            ratio = sum(d * d for d in _distances(seen[1], theirs)) ** 0.5 / ours
+            if not 1 / self.cfg.move_band <= ratio <= self.cfg.move_band:
+                erratic.add(j)
+        self._seen = {j: (None if rounds is None else rounds.get(j), [t.detach().clone() for t in theirs])
+                      for j, theirs in neighbours.items()}
+        return erratic
 
     def _remember_normal(self, votes: list[list[float]], base: list[float], movement: list[float] | None) -> None:
         """This round's normal, per tensor: the vote (with one neighbour, its distance), but at
@@ -183,27 +218,30 @@ class NeighbourClipper:
             normal.append(min(vote, b + 2 * (movement[t] if movement is not None else b)))
         self._normal.append(normal)
 
-    def _update_streaks(self, heard: list[int]) -> list[ClipNews]:
+    def _update_streaks(self, heard: list[int], erratic: set[int]) -> list[ClipNews]:
         news: list[ClipNews] = []
-        within = [j for j in heard if self.factors[j] >= 1.0 and j not in self.quarantined]
+        odd = {j for j in heard if self.factors[j] < 1.0 or j in erratic}
+        within = [j for j in heard if j not in odd and j not in self.quarantined]
         for j in heard:
             factor = self.factors[j]
-            if factor < 1.0:
+            if j in odd:
                 self.streak[j] = self.streak.get(j, 0) + 1
+                self.reason[j] = "clipped" if factor < 1.0 else "erratic"
                 self.calm.pop(j, None)
             else:
                 self.streak.pop(j, None)
+                self.reason.pop(j, None)
                 self._told.discard(j)
             run = self.streak.get(j, 0)
             gross = factor < 1 / self.cfg.clip_factor  # further than clip_factor^2 times the normal
             if (run >= self.cfg.report_after or gross) and j not in self._told:
                 self._told.add(j)
-                news.append(ClipNews("clipped_neighbour", j, run, factor))
+                news.append(ClipNews(f"{self.reason[j]}_neighbour", j, run, factor))
             if ((run >= self.cfg.report_after or gross) and self.cfg.quarantine and j not in self.quarantined
                     and len(heard) >= 2 and any(k != j for k in within)):
                 self.quarantined.add(j)
                 news.append(ClipNews("quarantined", j, run, factor))
-            elif j in self.quarantined and factor >= 1.0:
+            elif j in self.quarantined and j not in odd:
                 self.calm[j] = self.calm.get(j, 0) + 1
                 if self.calm[j] >= self.cfg.readmit_after:
                     self.quarantined.discard(j)
@@ -218,7 +256,8 @@ class NeighbourClipper:
     # --- persistence --------------------------------------------------------------------------
     def state_dict(self) -> dict:
         return {"normal": [list(n) for n in self._normal], "tau": None if self._tau is None else list(self._tau),
-                "streak": dict(self.streak), "calm": dict(self.calm), "quarantined": sorted(self.quarantined)}
+                "streak": dict(self.streak), "reason": dict(self.reason), "calm": dict(self.calm),
+                "quarantined": sorted(self.quarantined)}
 
     def load_state_dict(self, state: dict | None) -> None:
         """From :meth:`state_dict`; None (a checkpoint from before robust consensus): a fresh start."""
@@ -230,6 +269,7 @@ class NeighbourClipper:
         self._normal = deque((list(map(float, n)) for n in state["normal"]), maxlen=self.cfg.window)
         self._tau = None if state["tau"] is None else [float(x) for x in state["tau"]]
         self.streak = {int(j): int(n) for j, n in state["streak"].items()}
+        self.reason = {int(j): str(why) for j, why in state.get("reason", {}).items()}
         self.calm = {int(j): int(n) for j, n in state["calm"].items()}
         self.quarantined = {int(j) for j in state["quarantined"]}
 

@@ -52,6 +52,10 @@ class Vigilance:
                 self.report.warn(f"robot {n.neighbour}'s model was clipped {n.rounds} rounds in a row (to "
                                  f"{n.factor:.2g} of its distance this round): it lies far outside the swarm's "
                                  "normal disagreement (a faulty or hostile robot?)")
+            elif n.kind == "erratic_neighbour":
+                self.report.warn(f"robot {n.neighbour}'s model has not moved as a training robot's does for "
+                                 f"{n.rounds} rounds in a row (standing still: a replay? jumping: noise?): "
+                                 "a faulty or hostile robot?")
             elif n.kind == "quarantined":
                 self.report.warn(f"robot {n.neighbour} is quarantined from round {round_index}: out of the anchors, "
                                  "duals and barrier until its model is within bound again")
@@ -68,7 +72,7 @@ class Vigilance:
         with self._lock:
             out.update({j: "ahead_of_pace" for j in self._ahead})
         if self.clipper is not None:  # copies made under the GIL: the training thread changes them
-            streak, quarantined = dict(self.clipper.streak), set(self.clipper.quarantined)
-            out.update({j: "clipped" for j, run in streak.items() if run >= self.clipper.cfg.report_after})
-            out.update({j: "quarantined" for j in quarantined})
+            streak, reason = dict(self.clipper.streak), dict(self.clipper.reason)
+            out.update({j: reason.get(j, "clipped") for j, run in streak.items() if run >= self.clipper.cfg.report_after})
+            out.update({j: "quarantined" for j in set(self.clipper.quarantined)})
         return dict(sorted(out.items()))
