@@ -109,6 +109,7 @@ class NeighbourClipper:
         self._told: set[int] = set()  # reported in their current streak
         self.factors: dict[int, float] = {}  # last round: neighbour -> smallest clip factor (1.0: not clipped)
         self.clipped_count = 0  # (neighbour, round) pairs clipped so far in this process (benchmarks count them)
+        self.erratic_count = 0  # ... and found erratic
 
     # --- the bound --------------------------------------------------------------------------
     def _base(self, own: Sequence[Tensor], movement: list[float] | None) -> list[float]:
@@ -181,6 +182,7 @@ class NeighbourClipper:
             clipped[j], self.factors[j] = self._clip(own, theirs, dist[j], tau, for_dual=True)
             self.clipped_count += self.factors[j] < 1.0
         erratic = self._erratic(neighbours, movement, rounds)
+        self.erratic_count += len(erratic)
         self._remember_normal(votes, base, movement)
         news = self._update_streaks(sorted(neighbours), erratic)
         return {j: t for j, t in clipped.items() if j not in self.quarantined}, news

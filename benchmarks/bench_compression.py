@@ -90,6 +90,7 @@ def run_mode(mode: str, split, neighbours, cfg: SwarmTrainingConfig, topk: float
         "bytes_per_link_round": statistics.fmean(pushes), "raw_float32_bytes": raw,
         "ratio": statistics.fmean(pushes) / raw, "seconds": time.time() - t0,
         "clipped": sum(t.consensus.clipper.clipped_count for t in sim.trainers.values()),
+        "erratic": sum(t.consensus.clipper.erratic_count for t in sim.trainers.values()),
     }
 
 
@@ -160,7 +161,7 @@ def _print_mode(mode: str, r: dict) -> None:
     print(f"  {mode:10s} PSNR {r['psnr']:.2f} dB, others-only {r['psnr_others']:.2f} dB | "
           f"{r['bytes_per_link_round'] / 1e6:.4f} MB per link per round, ratio {r['ratio']:.4f} "
           f"({r['seconds']:.0f} s), worst pose {r['worst_rotation_deg']:.3f} deg / {r['worst_translation']:.4f}, "
-          f"neighbours clipped {r['clipped']} times",
+          f"neighbours clipped {r['clipped']} times, erratic {r['erratic']} times",
           flush=True)
 
 

@@ -7,7 +7,7 @@ round), ``noise`` (Gaussian noise of each tensor's RMS). The baseline is the sam
 robot ``silent`` (nobody hears it); ``clean`` is the swarm without any attack. Figures: the honest
 robots' mean PSNR on the held-out views (all / others-only), its difference to the silent run,
 the round at which every honest neighbour of the hostile robot named it, and how often an honest
-neighbour was clipped. ``--robust both`` also runs every attack with robust consensus off.
+neighbour was clipped or found erratic. ``--robust both`` also runs every attack with robust consensus off.
 
 **Round steering and a NaN-only neighbour** (``--part daemons``): real ``dinerf-agent up``
 processes on loopback; the hostile one is the real daemon with one change
@@ -119,6 +119,8 @@ def run_poison(attack: str, robust: bool, split, neighbours, cfg: SwarmTrainingC
             if any(n.neighbour == hostile for n in c.news) and i not in named:
                 named[i] = k
             false_clips += sum(1 for j, f in c.clipper.factors.items() if j != hostile and f < 1)
+            false_clips += sum(1 for j, why in c.clipper.reason.items() if j != hostile and why == "erratic"
+                               and c.clipper.factors.get(j, 1.0) >= 1)
 
     sim.run(on_round)
     honest = [i for i in ids if i != hostile]
@@ -156,7 +158,7 @@ def part_poison(args) -> dict:
             r = run_poison(attack, robust, split, neighbours, cfg, ev, hostile, args.attack_from, args.seed)
             runs.append(r)
             print(f"  {attack:10s} robust {'on ' if robust else 'off'}: honest PSNR {r['psnr']:.2f} / others-only "
-                  f"{r['psnr_others']:.2f} dB, named at round {r['named_round']} {r['named_by']}, honest clips "
+                  f"{r['psnr_others']:.2f} dB, named at round {r['named_round']} {r['named_by']}, honest neighbours suspected "
                   f"{r['honest_clips']} ({r['seconds']:.0f} s)", flush=True)
     silent = next((r for r in runs if r["attack"] == "silent"), None)
     print("\nsummary (honest robots' mean PSNR, all / others-only; difference to the silent-robot run):")
@@ -164,7 +166,7 @@ def part_poison(args) -> dict:
         diff = "" if silent is None else (f"  {r['psnr'] - silent['psnr']:+.2f} / "
                                           f"{r['psnr_others'] - silent['psnr_others']:+.2f} dB vs silent")
         print(f"  {r['attack']:10s} robust {'on ' if r['robust'] else 'off'} {r['psnr']:.2f} / {r['psnr_others']:.2f}"
-              f"{diff}  named at round {r['named_round']}, honest clips {r['honest_clips']}")
+              f"{diff}  named at round {r['named_round']}, honest suspected {r['honest_clips']}")
     return {"runs": runs}
 
 
