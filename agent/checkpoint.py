@@ -15,17 +15,24 @@
 Checkpoints and snapshots are state files (``agent.statefile``: safetensors + JSON, checksummed,
 written atomically); ``done.json`` is written atomically too. A file that cannot be used is
 refused with a :class:`CheckpointError` and left in place. A ``checkpoint.pt`` of an older
-dinerf is a pickle: it is refused, never loaded.
+dinerf is a pickle: it is refused, never loaded. A checksum proves no more than that the file is
+whole, so every field of a checkpoint is range-checked too (its round, its steps, finite
+weights). A save killed mid-write leaves ``.<name>.<pid>.<hex>.tmp`` behind;
+:meth:`RunFolder.remove_stale_temporaries` removes those of processes that are gone.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import re
+import stat
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import torch
 from torch import Tensor
 
 from agent.config_io import ConfigError, from_dict, to_dict
@@ -73,6 +80,42 @@ def _field(path: Path, state: Any, key: str, kind: type | tuple[type, ...]) -> A
     if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
         raise CheckpointError(path, f"malformed state: {key!r} is a {type(value).__name__}")
     return value
+
+
+def _non_finite(state: Any, where: str = "") -> str | None:
+    """The path of the first floating tensor in ``state`` holding a NaN or an infinity, if any."""
+    if isinstance(state, Tensor):
+        return where if state.is_floating_point() and not bool(torch.isfinite(state).all()) else None
+    items = state.items() if isinstance(state, dict) else enumerate(state) if isinstance(state, (list, tuple)) else ()
+    for key, value in items:
+        if (found := _non_finite(value, f"{where}/{key}" if where else str(key))) is not None:
+            return found
+    return None
+
+
+def _check_ranges(path: Path, ck: RobotCheckpoint) -> None:
+    """A checkpoint that decodes may still say what no run can produce: refused in one line."""
+    rounds, per_round = ck.training.rounds, ck.training.steps_per_round
+    if not 0 <= ck.round <= rounds:
+        raise CheckpointError(path, f"malformed state: round {ck.round} is outside 0..{rounds} (its training.rounds)")
+    step = _field(path, ck.trainer, "step", int)
+    if not 0 <= step <= ck.round * per_round:
+        raise CheckpointError(path, f"malformed state: {step} steps after {ck.round} rounds of {per_round}")
+    if (where := _non_finite({"box_from_shared": ck.box_from_shared, "trainer": ck.trainer})) is not None:
+        raise CheckpointError(path, f"malformed state: {where} holds NaN or infinite values")
+
+
+_TEMPORARY = re.compile(r"^\..+\.(\d+)\.[0-9a-f]{8}\.tmp$")  # agent.files.atomic_write_bytes' names
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, someone else's
+        return True
+    return pid != os.getpid()  # ours: a temporary of this process is never stale at its start
 
 
 class RunFolder:
@@ -131,7 +174,7 @@ class RunFolder:
                 raise CheckpointError(legacy, "a checkpoint of an older dinerf: a pickle (torch.save), "
                                       "which is never loaded (it could run code)")
             return None
-        state = read_state(path, ROBOT_KIND)
+        state = read_state(path, ROBOT_KIND, within=self.path)
         ck = RobotCheckpoint(
             round=_field(path, state, "round", int), robot_id=_field(path, state, "robot_id", int),
             trainer=_field(path, state, "trainer", dict), elected=_field(path, state, "elected", bool),
@@ -142,7 +185,30 @@ class RunFolder:
             raise CheckpointError(path, f"robot {ck.robot_id}'s checkpoint, not robot {robot_id}'s")
         if ck.box_from_shared.shape != (4, 4):
             raise CheckpointError(path, f"malformed state: a field box of shape {list(ck.box_from_shared.shape)}")
+        _check_ranges(path, ck)
         return ck
+
+    def remove_stale_temporaries(self) -> tuple[int, int]:
+        """Remove the temporary files of saves whose process is gone (killed mid-write): regular
+        files named as ``agent.files`` names them, here and in ``rounds/``. (count, bytes)."""
+        count = size = 0
+        for folder in (self.path, self.path / ROUNDS):
+            try:
+                names = os.listdir(folder)
+            except OSError:
+                continue
+            for name in names:
+                match = _TEMPORARY.match(name)
+                if match is None or _process_alive(int(match[1])):
+                    continue
+                try:
+                    info = os.lstat(folder / name)
+                    if stat.S_ISREG(info.st_mode):
+                        os.unlink(folder / name)
+                        count, size = count + 1, size + info.st_size
+                except OSError:
+                    continue
+        return count, size
 
     @staticmethod
     def _training(path: Path, data: dict) -> SwarmTrainingConfig:
@@ -156,7 +222,7 @@ class RunFolder:
         path = self.round_path(round_index)
         if not path.exists():
             raise CheckpointError(path, f"no snapshot of round {round_index} (kept: {self.snapshot_rounds()})")
-        snap = read_state(path, ROUND_KIND)
+        snap = read_state(path, ROUND_KIND, within=self.path)
         if (_field(path, snap, "round", int), _field(path, snap, "robot_id", int)) != (round_index, robot_id):
             raise CheckpointError(path, f"robot {snap['robot_id']}'s round {snap['round']}, "
                                   f"not robot {robot_id}'s round {round_index}")
@@ -184,8 +250,10 @@ class RunFolder:
             raise CheckpointError(self.data_record, "malformed: expected {\"data\": <folder>}")
         return Path(doc["data"])
 
-    def write_done(self, robot_id: int, rounds: int, rejected: dict[str, int]) -> None:
-        done = {"robot": robot_id, "rounds": rounds, "time": time.time(), "rejected": rejected}
+    def write_done(self, robot_id: int, rounds: int, rejected: dict[str, int], **extra: Any) -> None:
+        """``rounds`` reached; ``extra``: e.g. the steps trained and the joins and skips that
+        moved the round otherwise (each taken from a quorum of neighbours)."""
+        done = {"robot": robot_id, "rounds": rounds, "time": time.time(), "rejected": rejected, **extra}
         atomic_write_text(self.done, json.dumps(done, indent=2) + "\n")
 
 

@@ -10,15 +10,20 @@ updates its dual ``y_i += rho_k * sum_j (theta_i^{k+1} - theta_j^{k+1})`` over t
 The penalty is applied as an explicit gradient added after ``backward()`` (no autograd graph
 over millions of parameters): ``d/dtheta = y_i + 2 rho_k (n theta - sum_j a_j)`` with the
 anchors ``a_j = (theta_i^k + theta_j^k) / 2``. Nothing here knows about NeRF or the network.
+
+Every theta_j passes through :class:`agent.robust.NeighbourClipper` first (robust consensus: a
+neighbour's model enters only within the swarm's normal disagreement of the robot's own).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
 import torch
 from torch import Tensor
+
+from agent.robust import ClipNews, NeighbourClipper, RobustConfig
 
 
 @dataclass
@@ -41,6 +46,7 @@ class ConsensusConfig:
     forget_edge_after: int = 2  # an edge silent for this many rounds restarts its dual at zero
     # (a cut link, a dead neighbour): the old y_ij priced a disagreement both models have since
     # left behind, and applied on return it pushes in a stale direction. 0 = never forget.
+    robust: RobustConfig = field(default_factory=RobustConfig)  # clipping of neighbours' models (agent.robust)
 
     def __post_init__(self) -> None:
         if self.rho0 <= 0 or self.rho_growth < 1.0 or self.rho_max < self.rho0:
@@ -71,11 +77,15 @@ class Consensus:
         self.num_neighbours = 0
         self.rho = cfg.rho(0)
         self.round = 0
+        self.clipper = NeighbourClipper(cfg.robust, len(params))
+        self.news: list[ClipNews] = []  # what the last dual update found about the neighbours
 
     # --- one round -------------------------------------------------------------------------
     @torch.no_grad()
     def begin_round(self, round_index: int, own: Sequence[Tensor], neighbours: Mapping[int, Sequence[Tensor]]) -> None:
-        """Fix the anchors of round k from theta_i^k and the theta_j^k of the neighbours heard."""
+        """Fix the anchors of round k from theta_i^k and the theta_j^k of the neighbours heard
+        (clipped as the dual update at the end of round k - 1 clipped them; quarantined left out)."""
+        neighbours = self.clipper.apply(own, neighbours)
         self.round = round_index
         self.rho = self.cfg.rho(round_index)
         self.num_neighbours = len(neighbours)
@@ -130,9 +140,16 @@ class Consensus:
         return total
 
     @torch.no_grad()
-    def dual_update(self, own: Sequence[Tensor], neighbours: Mapping[int, Sequence[Tensor]]) -> None:
+    def dual_update(self, own: Sequence[Tensor], neighbours: Mapping[int, Sequence[Tensor]],
+                    rounds: Mapping[int, int] | None = None) -> None:
         """``y_ij += rho_k (theta_i^{k+1} - theta_j^{k+1})`` for the neighbours heard (the next
-        round's ``begin_round`` sums them)."""
+        round's ``begin_round`` sums them), each theta_j clipped first; a neighbour quarantined
+        now loses its edge dual. ``rounds``: each snapshot's round (NeighbourClipper.observe)."""
+        neighbours, self.news = self.clipper.observe(own, neighbours, rounds)
+        for news in self.news:
+            if news.kind == "quarantined":
+                self.edge_duals.pop(news.neighbour, None)
+                self.edge_round.pop(news.neighbour, None)
         for j, theta_j in neighbours.items():
             self._forget_if_silent(j, self.round)  # a returning edge is usually seen here first
             edge = self.edge_duals.setdefault(j, [z.clone() for z in self._zeros])
@@ -146,13 +163,15 @@ class Consensus:
         that is gone)."""
         self.edge_duals.clear()
         self.edge_round.clear()
+        self.clipper.forget_own()
         for y in self.duals:
             y.zero_()
 
     # --- persistence ---------------------------------------------------------------------
     def state_dict(self) -> dict:
         return {"edge_duals": {j: [d.clone() for d in y] for j, y in self.edge_duals.items()},
-                "edge_round": dict(self.edge_round), "rho": self.rho, "round": self.round}
+                "edge_round": dict(self.edge_round), "rho": self.rho, "round": self.round,
+                "robust": self.clipper.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
         if "edge_duals" not in state:
@@ -170,6 +189,7 @@ class Consensus:
         self.round = int(state["round"])
         self.anchor_sum = None
         self.num_neighbours = 0
+        self.clipper.load_state_dict(state.get("robust"))
 
 
 def disagreement(thetas: Sequence[Sequence[Tensor]]) -> list[float]:

@@ -22,7 +22,6 @@ shared frame, the field and every other robot's pose stay valid.
 from __future__ import annotations
 
 import dataclasses
-import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -41,10 +40,14 @@ from agent.data.capture import estimate_scene_box, field_box_mismatch
 from agent.data.views import Views
 from agent.geometry import box_from_center, pose_summary
 from agent.swarm import RobotSetup, SwarmTrainingConfig, build_robot
-from agent.telemetry import EventLog, JsonLines, PlateauRule, Reporter, RoundRecord, StatusBoard
+from agent.rejoin import Rejoin, RejoinPolicy, to_torch
+from agent.round_report import RoundReport, RoundTimes
+from agent.telemetry import EventLog, JsonLines, PlateauRule, Reporter, StatusBoard
+from agent.vigilance import Vigilance
 from protocol import codec
 from protocol.compression import CompressionConfig
-from protocol.exchange import ExchangeTiming, SnapshotExchange, plan_catch_up
+from protocol.evidence import ClaimPace
+from protocol.exchange import ExchangeTiming, SnapshotExchange
 from protocol.keys import Keys
 from protocol.membership import Membership, Topology
 from protocol.messages import Alignment, ModelSpec, Status, ThetaSnapshot
@@ -74,6 +77,10 @@ class DaemonConfig:
     # its own is stale, and C-ADMM would pull the neighbours back towards it. 0 = keep its own.
     adopt_after_rounds: int = 2
     resend_delay_s: float = 1.0  # re-push our snapshot this long after a neighbour's link appears
+    # A neighbour's claimed round counts only as far as its pace explains: one round per our own
+    # fastest recent round divided by this (protocol.evidence.ClaimPace). Robots may differ in speed.
+    pace_margin: float = 2.0
+    refused_after: int = 3  # a neighbour whose snapshots were refused this many rounds in a row is not waited for
     # Initial relative pose: "identity" (the paper) or "coarse": match compact keyframe summaries
     # (descriptors + 3-D points, never images) with neighbours whose pose is already known.
     # None: what the swarm's frames call for (agent.frames: identity when shared, else coarse)
@@ -100,14 +107,14 @@ class DaemonConfig:
         if self.wire_dtype != "float32" and self.exchange.compression != "none":
             raise ValueError(f"daemon.wire_dtype = {self.wire_dtype!r} and daemon.exchange.compression = "
                              f"{self.exchange.compression!r}: choose one (compression = \"fp16\" is float16)")
-        check(self, isolated_after=">= 0")
+        check(self, isolated_after=">= 0", pace_margin=">= 1", refused_after=">= 1")
         if self.silent_after_s < 2 * self.heartbeat_s:
             raise ValueError(f"silent_after_s ({self.silent_after_s}) must be at least two heartbeats "
                              f"({2 * self.heartbeat_s} s): one lost heartbeat must not count as silence")
 
     def exchange_timing(self) -> ExchangeTiming:
         return ExchangeTiming(self.round_timeout_s, self.pull_after_s, self.silent_after_s, self.join_timeout_s,
-                              self.resend_delay_s)
+                              self.resend_delay_s, self.refused_after)
 
 
 @dataclass(frozen=True)
@@ -139,11 +146,6 @@ def model_spec(setup: RobotSetup) -> ModelSpec:
 
 def _to_numpy(theta: Mapping[str, Tensor]) -> dict[str, np.ndarray]:
     return {n: np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float32) for n, t in theta.items()}
-
-
-def _to_torch(snapshots: Mapping[int, ThetaSnapshot]) -> dict[int, dict[str, Tensor]]:
-    return {j: {n: torch.from_numpy(np.array(a, dtype=np.float32, copy=True)) for n, a in m.tensors.items()}
-            for j, m in snapshots.items()}
 
 
 class Daemon:
@@ -185,6 +187,7 @@ class Daemon:
         self.setup = build_robot(robot_id, views, box_from_shared, training, initial_pose, is_reference=False)
         self.trainer = self.setup.trainer
         self.mailbox: Mailbox[ThetaSnapshot] = Mailbox(max_ahead=cfg.max_ahead, last_round=training.rounds)
+        self.pace = ClaimPace()
         self.presence = Presence(network, self.keys, robot_id, swarm.topology, cfg.alive_expiry_s, cfg.heartbeat_s,
                                  self._stop, self._status_message, self._heard_status,
                                  lambda j: self.exchange.link_appeared(j), self._membership_changed,
@@ -205,12 +208,19 @@ class Daemon:
                                    self._model_changed)
         self._model_changed()
         self._last_heard: dict[int, ThetaSnapshot] = {}
-        self._traffic_at_record: dict = {}  # the counters at the last round's record: the next window starts there
-        self._rgb_losses: list[float] = []
-        self._warned_flat = False
-        self._isolated_rounds = 0  # consecutive rounds in consensus without hearing any neighbour
         self._round_compute_s: float | None = None  # our last round's training time: may we train through a gap?
-        self._cpu_at_record = 0.0  # the process's CPU time at the last round record
+        self._recent_round_s: list[float] = []  # the last rounds' durations: the pace a neighbour may keep
+        self._moves: list[dict] = []  # joins and skips of this process, for done.json
+        self.rejoin = Rejoin(RejoinPolicy(training.rounds, cfg.adopt_after_rounds, cfg.round_timeout_s,
+                                          cfg.heartbeat_s), self.trainer, self.exchange, self.mailbox, self.report,
+                             self._stop, self._consensus_peers, self._in_consensus, self._raw_claim)
+        consensus = self.trainer.consensus
+        self.vigilance = Vigilance(self.report, self.pace, self.exchange.refusals,
+                                   consensus.clipper if consensus is not None else None)
+        self.rounds_report = RoundReport(
+            robot_id, training.rounds, self.setup, network, self.exchange, self.membership, self.presence.reachable,
+            self.board, self.report, self._telemetry, eval_every=cfg.eval_every, plateau=cfg.plateau,
+            isolated_after=cfg.isolated_after, compression=cfg.exchange.compression)
 
     def _model_changed(self) -> None:
         """(Re)derive what our snapshots are and what a neighbour's must look like (our box is in it)."""
@@ -222,7 +232,12 @@ class Daemon:
 
     # ------------------------------------------------------------------ callbacks
     def _claimed_round(self, j: int) -> int | None:
-        """The round neighbour j says, in its newest heartbeat, that it has completed."""
+        """The round neighbour j says, in its newest heartbeat, that it has completed, as far as
+        its pace explains it (``protocol.evidence.ClaimPace``)."""
+        return self.pace.credible(j)
+
+    def _raw_claim(self, j: int) -> int | None:
+        """j's claimed round as it says it, for the join's quorum (a lone far claim moves nothing there)."""
         status = self.board.peers().get(j)
         return None if status is None else status.round
 
@@ -240,8 +255,9 @@ class Daemon:
     def _barrier(self) -> tuple[dict[int, ThetaSnapshot], float]:
         """The round's barrier; what it returns only from neighbours still in consensus when it ends
         (one that turned unaligned meanwhile is never averaged with)."""
-        heard, waited = self.exchange.barrier(self.round, self._consensus_peers)
-        peers = self._consensus_peers()
+        quarantined = self.trainer.consensus.clipper.quarantined if self.trainer.consensus is not None else set()
+        heard, waited = self.exchange.barrier(self.round, lambda: self._consensus_peers() - quarantined)
+        peers = self._consensus_peers()  # a quarantined neighbour's model is still measured (agent.robust)
         return {j: m for j, m in heard.items() if j in peers}, waited
 
     def _maybe_realign(self, heard: dict[int, ThetaSnapshot]) -> None:
@@ -253,16 +269,17 @@ class Daemon:
         if not self.bootstrap.retry(from_field=self.round >= self.cfg.realign_from_field_after):
             return
         if heard:
-            self._adopt_mean(list(heard.values()), reset_duals=True)
+            self.rejoin.adopt(heard, reset_duals=True)
         self.trainer.reset_occupancy()
         self.report.event("entered_consensus", neighbours=sorted(heard))
         self.report.say(f"aligned at round {self.round}: taking the neighbours' model {sorted(heard)}, in consensus now")
 
     def _heard_status(self, status: Status) -> None:
         """A neighbour's heartbeat; one claiming a newer round may vouch for a snapshot the barrier holds."""
-        before = self.board.peers().get(status.sender)
+        before = self.pace.credible(status.sender)
         self.board.heard_from(status.sender, status)
-        if before is None or status.round > before.round:
+        self.vigilance.heard_claim(status.sender, status.round, time.monotonic(), self.round)
+        if before is None or (self.pace.credible(status.sender) or 0) > before:
             self.mailbox.notify()
 
     def _membership_changed(self, m: Membership) -> None:
@@ -294,7 +311,8 @@ class Daemon:
             bytes_in=int(s.get("bytes_in_total", 0)), bytes_out=int(s.get("bytes_out_total", 0)),
             rejected=self.report.rejected_counts(), alignment=s["alignment"], alignment_detail=s["alignment_detail"],
             wall_time=time.time(), seconds_compute=float(s.get("seconds_compute", 0.0)),
-            seconds_wait=float(s.get("seconds_wait", 0.0)), alive_ages=self.presence.alive.report())
+            seconds_wait=float(s.get("seconds_wait", 0.0)), alive_ages=self.presence.alive.report(),
+            suspects=self.vigilance.suspects())
 
     # ------------------------------------------------------------------ checkpoints
     def _checkpoint(self) -> None:
@@ -307,6 +325,8 @@ class Daemon:
         """Continue from our checkpoint, if there is one. One that cannot be used stops the robot
         with one line (CheckpointError) and stays where it is: resuming from a damaged or foreign
         state, or silently starting over, would both be worse than asking the user."""
+        if (stale := self.folder.remove_stale_temporaries())[0]:
+            self.report.say(f"removed {stale[0]} temporary file(s) of a save that never finished ({stale[1] / 1e6:.1f} MB)")
         try:
             ck = self.folder.load(self.robot_id)
         except CheckpointError as e:
@@ -315,6 +335,8 @@ class Daemon:
             return False
         path = self.folder.checkpoint
         try:
+            if ck.round > self.training.rounds:
+                raise ValueError(f"it is of round {ck.round}, past training.rounds = {self.training.rounds}")
             if self.bootstrap.box_pending:  # learnt before the restart
                 self.bootstrap.adopt_box(ck.box_from_shared.double().cpu().numpy(), "our checkpoint")
             if ck.signature != self.spec.signature():
@@ -365,23 +387,28 @@ class Daemon:
             self._wait_for_roster()
             if self.cfg.initial_pose == "coarse" and not resumed:
                 self.bootstrap.coarse_alignment()
-            self._join_current_round()
+            if (move := self.rejoin.join(self.round)) is not None:
+                self.round = move.to_round
+                self._moves.append({"kind": move.kind, "from": move.from_round, "to": move.to_round,
+                                    "adopted": list(move.adopted)})
             self._apply_reference()
+            self.vigilance.armed = True
             self.report.event("start", resumed=resumed, alive=sorted(self.membership.alive),
                               reference=self.membership.reference)
-            stats0 = self._traffic()
-            self._cpu_at_record = time.process_time()
+            self.rounds_report.start()
             if self._in_consensus():
                 self._publish_theta(self.round)
             heard = self._barrier()[0]
             heard = self._catch_up(heard)
             self.mailbox.advance(self.round)
+            if self._moves:  # a join or a skip leaves a checkpoint of where it landed
+                self._checkpoint()
             while self.round < self.training.rounds:
                 self._check_stop()
-                completed += self._one_round(heard_in=heard, stats_before=stats0)
-                stats0 = self._traffic_at_record
+                completed += self._one_round(heard_in=heard)
                 heard = self._last_heard
-            self.folder.write_done(self.robot_id, self.round, self.report.rejected_counts())
+            self.folder.write_done(self.robot_id, self.round, self.report.rejected_counts(), steps=self.trainer.step,
+                                   moves=self._moves)
             self.report.say(f"done: {self.round} rounds")
             deadline = time.monotonic() + self.cfg.linger_s  # our last snapshot must still get out
             self.exchange.wait_sent(self.cfg.linger_s)
@@ -396,12 +423,12 @@ class Daemon:
             self._telemetry.close()
         return completed
 
-    def _one_round(self, heard_in: dict[int, ThetaSnapshot], stats_before: dict) -> int:
+    def _one_round(self, heard_in: dict[int, ThetaSnapshot]) -> int:
         k = self.round
         t0, cpu0 = time.monotonic(), time.process_time()
         aligned = self._in_consensus()
         self.board.set(phase="training")
-        self.trainer.begin_round(k, _to_torch(heard_in if aligned else {}), own=self._as_received(k))
+        self.trainer.begin_round(k, to_torch(heard_in if aligned else {}), own=self._as_received(k))
         stats = self.trainer.train(self.training.steps_per_round, on_step=self._check_stop)
         self.round = k + 1
         t_compute = self._round_compute_s = time.monotonic() - t0
@@ -412,113 +439,23 @@ class Daemon:
         self.presence.beat_now()
         heard, waited = self._barrier()  # unaligned: for the pace only
         self._apply_reference()  # a failover seen while waiting takes effect now, not next round
-        self.trainer.end_round(_to_torch(heard if aligned else {}), own=self._as_received(self.round))
+        self.trainer.end_round(to_torch(heard if aligned else {}), own=self._as_received(self.round),
+                               rounds={j: m.round for j, m in heard.items()})
+        if (consensus := self.trainer.consensus) is not None:
+            self.vigilance.consensus_news(consensus.news, self.round)
+        self._recent_round_s = (self._recent_round_s + [time.monotonic() - t0])[-8:]
+        self.pace.min_round_s = min(self._recent_round_s) / self.cfg.pace_margin
         heard = self._catch_up(heard)
         self.mailbox.advance(self.round)  # slide the window: keeps accepting up to round + max_ahead
         if not aligned:
             self._maybe_realign(heard)
         self._last_heard = heard
         self._checkpoint()
-        pose = self._pose()
-        record = self._round_record(stats, sorted(heard) if aligned else [], stats_before, pose,
-                                    t_compute=t_compute, cpu_compute=cpu_compute, waited=waited)
-        self._telemetry.write_line(record.to_json())
-        net = self.net.stats()
-        self.board.set(phase="round_done", loss=stats.loss, psnr=record.psnr, heard=record.heard,
-                       bytes_in_total=net["bytes_in_total"], bytes_out_total=net["bytes_out_total"],
-                       seconds_compute=t_compute, seconds_wait=waited, pose7=pose[1]["params7"])
-        (self.report.warn if record.alignment == "unaligned" else self.report.say)(record.log_line(self.training.rounds))
-        self._warn_if_flat(stats.rgb_loss)
-        self._warn_if_isolated(record.heard if aligned else None)
+        factors = consensus.clipper.factors if consensus is not None else {}
+        self.rounds_report.round_done(self.round, stats, sorted(heard) if aligned else None, self.elected,
+                                      RoundTimes(t_compute, cpu_compute, waited), self.spec.float32_bytes,
+                                      clipped={j: f for j, f in factors.items() if f < 1}, suspects=self.vigilance.suspects())
         return 1
-
-    def _warn_if_isolated(self, heard: list[int] | None) -> None:
-        """Say it when an aligned robot hears none of its neighbours for ``isolated_after`` rounds
-        in a row (it trains alone, and nothing else in its log line says why), and when it hears
-        them again. ``heard`` None: not in consensus (unaligned), which has warnings of its own."""
-        if heard is None or heard or not self.exchange.neighbours:
-            if heard and self._isolated_rounds >= self.cfg.isolated_after > 0:
-                self.report.say(f"hears its neighbours again ({heard}) after {self._isolated_rounds} rounds alone")
-            self._isolated_rounds = 0
-            return
-        self._isolated_rounds += 1
-        if self._isolated_rounds != self.cfg.isolated_after:
-            return
-        mb = self.spec.float32_bytes / 1e6
-        self.report.event("isolated", rounds=self._isolated_rounds, neighbours=sorted(self.exchange.neighbours))
-        self.report.warn(f"heard none of its neighbours {sorted(self.exchange.neighbours)} for {self._isolated_rounds} "
-                         f"rounds: it trains alone. Are they up and reachable? On a slow link a snapshot may never get "
-                         f"through: this field is {mb:.1f} MB at float32, sent as {self.cfg.exchange.compression!r} "
-                         "(daemon.exchange.compression)")
-
-    def _warn_if_flat(self, rgb_loss: float) -> None:
-        """Say it once when the photometric loss stops moving while still high (agent.telemetry.PlateauRule)."""
-        self._rgb_losses.append(rgb_loss)
-        if self._warned_flat or not self.cfg.plateau.is_flat(self._rgb_losses):
-            return
-        self._warned_flat = True
-        last = self._rgb_losses[-self.cfg.plateau.window:]
-        mean = sum(last) / len(last)
-        self.report.event("loss_flat", rgb_loss=mean, rounds=len(last))
-        self.report.warn(f"the training loss has been flat at {mean:.4f} ({-10 * math.log10(mean):.1f} dB) for "
-                         f"{len(last)} rounds: the field may not model what the cameras see (an RGB capture needs "
-                         "an unbounded field: training.train.field.unbounded; see `dinerf-agent inspect` warnings)")
-
-    def _traffic(self) -> dict:
-        """The network's counters and, per neighbour, the snapshot bytes pushed so far."""
-        return {**self.net.stats(), "links": self.exchange.bytes_sent()}
-
-    def _link_bytes(self, now: dict, stats_before: dict) -> tuple[dict[int, int], float | None]:
-        """Per neighbour the snapshot bytes pushed this round, and their mean over the raw float32 size."""
-        before = stats_before.get("links", {})
-        links = {j: b - before.get(j, 0) for j, b in now["links"].items()}
-        links = {j: b for j, b in links.items() if b}
-        raw = self.spec.float32_bytes
-        return links, (sum(links.values()) / len(links) / raw if links and raw else None)
-
-    def _cpu_since_record(self) -> float:
-        """What the round cost this robot in CPU (all threads), whatever else the machine ran."""
-        now, before = time.process_time(), self._cpu_at_record
-        self._cpu_at_record = now
-        return now - before
-
-    def _pose(self) -> tuple[Tensor, dict]:
-        """The pose estimate ``[4, 4]`` and its summary, computed once for the round's record and status."""
-        with torch.no_grad():
-            matrix = self.trainer.pose.matrix().detach()
-            return matrix, pose_summary(matrix)
-
-    def _own_psnr(self) -> float | None:
-        """PSNR on the robot's own held-out views, when this round is one to evaluate."""
-        every = self.cfg.eval_every
-        if every <= 0 or self.setup.holdout is None or (self.round % every and self.round != self.training.rounds):
-            return None
-        scores = self.trainer.evaluate(self.setup.holdout, frame="local", with_ssim=False)["psnr"]
-        return sum(scores) / len(scores)
-
-    def _round_record(self, stats, heard: list[int], stats_before: dict, pose: tuple[Tensor, dict], *,
-                      t_compute: float, cpu_compute: float, waited: float) -> RoundRecord:
-        psnr = self._own_psnr()
-        # Counted from the end of the last round's window: a neighbour already a round ahead may
-        # be counted in the round before the one its snapshot is for, but no byte goes uncounted.
-        net = self._traffic_at_record = self._traffic()
-        bytes_in = {int(j): net["bytes_in"].get(j, 0) - stats_before["bytes_in"].get(j, 0) for j in net["bytes_in"]}
-        (matrix, summary), s = pose, self.board.own()
-        links, ratio = self._link_bytes(net, stats_before)
-        return RoundRecord(
-            robot=self.robot_id, round=self.round, time=time.time(), monotonic=time.monotonic(), loss=stats.loss,
-            rgb_loss=stats.rgb_loss, depth_loss=stats.depth_loss, batch_psnr=stats.batch_psnr, psnr=psnr,
-            samples_per_ray=stats.samples_per_ray, pose=matrix.double().cpu().tolist(),
-            pose_rotation_deg=summary["rotation_deg"], pose_translation=summary["translation"], pose_scale=summary["scale"],
-            reference=self.membership.reference, elected=self.elected, epoch=self.membership.epoch,
-            live_neighbours=sorted(self.membership.live_neighbours), reachable=sorted(self.presence.reachable()),
-            heard=heard, bytes_in={j: b for j, b in bytes_in.items() if b},
-            bytes_out=net["bytes_out_total"] - stats_before["bytes_out_total"], bytes_out_links=links,
-            wire_ratio=ratio, seconds_compute=t_compute,
-            seconds_wait=waited, cpu_seconds=self._cpu_since_record(), cpu_seconds_compute=cpu_compute,
-            seconds_last_put=self.exchange.last_put_seconds(), steps=stats.steps,
-            seconds_per_step=stats.seconds / max(stats.steps, 1), rejected=self.report.rejected_counts(),
-            alignment=Alignment(s["alignment"]).value, alignment_detail=s["alignment_detail"])
 
     # ------------------------------------------------------------------ snapshots, joining, catching up
     def _publish_theta(self, round_index: int) -> None:
@@ -535,79 +472,15 @@ class Daemon:
             return None
         return {n: torch.from_numpy(np.array(a, dtype=np.float32, copy=True)) for n, a in held[1].items()}
 
-    def _join_current_round(self) -> None:
-        """Late join / restart: fetch the neighbours' newest snapshots and move to their round.
-
-        A snapshot counts only up to the round its sender's own heartbeat says it has completed,
-        and the round joined is the one the neighbours agree on (the lower median): no single
-        answer, forged or not, can move a robot to another round."""
-        newest: dict[int, ThetaSnapshot] = {}
-        for j in sorted(self.presence.reachable()):
-            claim = self._wait_for_claim(j)
-            if claim is not None and (msg := self.exchange.fetch_latest(j, at_most=claim)) is not None:
-                newest[j] = msg
-        if not newest:
-            return
-        # the round the neighbours agree on (the lower median): one reply cannot move us alone
-        rounds = sorted(m.round for m in newest.values())
-        target = min(rounds[(len(rounds) - 1) // 2], self.training.rounds)
-        if target > self.round:
-            fresh_start = self.round == 0 and self.trainer.step == 0
-            # an unaligned robot keeps its own field: the neighbours' lives in a frame it cannot place yet
-            adopt = (fresh_start or self._is_stale(target)) and self._in_consensus()
-            if adopt:  # a new robot starts from the swarm's current model, not from theta^0
-                self._adopt_mean([m for m in newest.values() if m.round == target], reset_duals=not fresh_start)
-            self.report.event("joined", from_round=self.round, to_round=target, fresh=fresh_start, adopted=adopt)
-            self.report.say(f"joining the swarm at round {target} (was at {self.round}"
-                            f"{', taking the neighbours mean model' if adopt else ''})")
-            self.round = target
-            self.mailbox.advance(target)
-        for j, m in newest.items():
-            if m.round >= self.round:
-                self.exchange.offer_quietly(j, m)
-
-    def _wait_for_claim(self, j: int) -> int | None:
-        """j's claimed round, waiting a few heartbeats for its first status if none came yet."""
-        deadline = time.monotonic() + 4 * self.cfg.heartbeat_s
-        while (claim := self._claimed_round(j)) is None and time.monotonic() < deadline and not self._stop.is_set():
-            time.sleep(0.05)
-        return claim
-
-    def _is_stale(self, target: int) -> bool:
-        return self.cfg.adopt_after_rounds > 0 and target - self.round >= self.cfg.adopt_after_rounds
-
-    def _adopt_mean(self, snapshots: list[ThetaSnapshot], reset_duals: bool) -> None:
-        """Replace theta_i by the mean of the neighbours' snapshots (all of one round)."""
-        thetas = list(_to_torch(dict(enumerate(snapshots))).values())
-        self.trainer.load_theta({n: sum(t[n] for t in thetas) / len(thetas) for n in thetas[0]},
-                                reset_duals=reset_duals)
-
     def _catch_up(self, heard: dict[int, ThetaSnapshot]) -> dict[int, ThetaSnapshot]:
-        """If neighbours moved on without us (we were slow or cut off), catch up with them.
-
-        A neighbour one round ahead is normal: it is waiting at its barrier for our next snapshot.
-        Two or more ahead means it passed a barrier without us and now waits for our round-``target``
-        snapshot. Training through costs no steps; skipping keeps it from timing out round after
-        round when training through would take too long (``plan_catch_up``).
-        """
-        newest = {j: self.exchange.credible_round(j, self.round) for j in self._consensus_peers()}
-        plan = plan_catch_up(self.round, newest, self._round_compute_s, self.cfg.round_timeout_s / 2)
-        if plan is None:
+        """Skip to the round a quorum of neighbours reached without us (``agent.rejoin``)."""
+        move = self.rejoin.catch_up(self.round, self._round_compute_s)
+        if move is None:
             return heard
-        action, target = plan
-        if action == "train":
-            self.report.event("training_through", from_round=self.round, to_round=target)
-            return heard
-        self.mailbox.advance(target)  # first: a snapshot kept beyond the window is in place only now
-        items = {j: m for j, m in self.mailbox.items(target).items() if j in self.membership.neighbours}
-        adopt = self._is_stale(target) and bool(items)
-        if adopt:
-            self._adopt_mean(list(items.values()), reset_duals=True)
-        self.report.event("caught_up", from_round=self.round, to_round=target, adopted=adopt)
-        self.report.say(f"neighbours are at round {target}; skipping from {self.round}"
-                        f"{', taking their mean model' if adopt else ''}")
-        self.round = target
-        # Neighbours already at `target` are waiting for our round-`target` snapshot: send our
-        # current theta as such at once, or they time out and the swarm stays out of phase.
-        self._publish_theta(target)
-        return dict(sorted(items.items()))
+        self.round = move.to_round
+        self._moves.append({"kind": move.kind, "from": move.from_round, "to": move.to_round,
+                            "adopted": list(move.adopted)})
+        # Neighbours already at the target are waiting for our snapshot of it: send our current
+        # theta as such at once, or they time out and the swarm stays out of phase.
+        self._publish_theta(move.to_round)
+        return move.heard

@@ -13,8 +13,10 @@ safetensors format) holds
 
 Loading never runs code from the file (no pickle; the JSON decodes to plain data only), and it
 refuses, with one line naming the file, anything that is not exactly what was written: not a
-file, empty, truncated, not safetensors, a pickle, another kind, a checksum that does not match.
-A refused file is left where it is, for the user to look at.
+regular file (a FIFO would hang the reader, /dev/zero would fill the memory), a symlink out of
+the folder it must stay in, larger than the machine can hold, empty, truncated, not
+safetensors, a pickle, another kind, a checksum that does not match. Its size is known before a
+byte is read. A refused file is left where it is, for the user to look at.
 
 One file rather than a sidecar JSON: a single ``os.replace`` publishes state and tensors
 together, so they can never be from two different saves.
@@ -24,6 +26,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import stat
 import struct
 from pathlib import Path
 from typing import Any
@@ -74,10 +78,11 @@ def write_state(path: str | Path, kind: str, state: Any) -> None:
     atomic_write_bytes(path, save(tensors, metadata=meta))
 
 
-def read_state(path: str | Path, kind: str) -> Any:
-    """The state in ``path`` (tensors on the CPU), or :class:`CheckpointError` saying why not."""
+def read_state(path: str | Path, kind: str, within: str | Path | None = None) -> Any:
+    """The state in ``path`` (tensors on the CPU), or :class:`CheckpointError` saying why not.
+    ``within``: a folder that ``path`` must not leave, symlinks followed (a run folder)."""
     path = Path(path)
-    data = _read_bytes(path)
+    data = _read_bytes(path, within)
     meta = _metadata(path, data)
     if meta.get("kind") != kind:
         raise CheckpointError(path, f"a {meta.get('kind')!r} file, not a {kind!r}")
@@ -97,13 +102,57 @@ def read_state(path: str | Path, kind: str) -> Any:
         raise CheckpointError(path, f"malformed state: {e}") from None
 
 
-def _read_bytes(path: Path) -> bytes:
-    if path.is_dir():
-        raise CheckpointError(path, "is a directory, not a state file")
+def memory_limit() -> int:
+    """The largest state file read into memory: half the machine's RAM (a bigger one is refused
+    in one line rather than ending in a MemoryError)."""
     try:
-        data = path.read_bytes()
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2
+    except (ValueError, OSError, AttributeError):
+        return 8 << 30
+
+
+def _kind_of(mode: int) -> str:
+    for test, name in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def _open_regular(path: Path, within: str | Path | None) -> tuple[int, int]:
+    """(file descriptor, size) of ``path``, which must be a regular file (inside ``within``).
+    O_NONBLOCK: opening a FIFO for reading would otherwise wait for a writer, for ever."""
+    if within is not None:
+        real, folder = os.path.realpath(path), os.path.realpath(within)
+        if os.path.commonpath([real, folder]) != folder:
+            raise CheckpointError(path, f"is a symlink to {real}, outside {folder}: not followed")
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except IsADirectoryError:
+        raise CheckpointError(path, "is a directory, not a state file") from None
     except OSError as e:
         raise CheckpointError(path, f"cannot be read ({e.strerror or e})") from None
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode):
+        os.close(fd)
+        what = _kind_of(info.st_mode)
+        raise CheckpointError(path, f"is {what}, not a state file" if what != "not a regular file" else what)
+    if info.st_size > (limit := memory_limit()):
+        os.close(fd)
+        raise CheckpointError(path, f"is {info.st_size / 1e9:.1f} GB, more than the {limit / 1e9:.1f} GB a state "
+                                    "file may take here (half the memory)")
+    return fd, info.st_size
+
+
+def _read_bytes(path: Path, within: str | Path | None = None) -> bytes:
+    fd, size = _open_regular(path, within)
+    try:
+        with os.fdopen(fd, "rb") as f:
+            data = f.read(size + 1)  # one more: a file that grew since fstat is read as it was sized
+    except OSError as e:
+        raise CheckpointError(path, f"cannot be read ({e.strerror or e})") from None
+    if len(data) != size:
+        raise CheckpointError(path, "changed while it was read (another writer?)")
     if not data:
         raise CheckpointError(path, "is empty (a save that never completed?)")
     looks_safetensors = data[_SAFETENSORS_BRACE:_SAFETENSORS_BRACE + 1] == b"{"

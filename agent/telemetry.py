@@ -61,12 +61,16 @@ class RoundRecord:
     alignment: str | None = None  # protocol.messages.Alignment value
     alignment_detail: str = ""
     disagreement: float | None = None  # ||theta_i - mean|| / ||mean|| (the simulation knows it)
+    clipped: dict[int, float] = field(default_factory=dict)  # per neighbour clipped this round: its smallest factor
+    suspects: dict[int, str] = field(default_factory=dict)  # neighbours not trusted, and why (messages.SUSPICIONS)
 
     def to_json(self) -> str:
         doc = dataclasses.asdict(self)
         doc["bytes_in"] = {str(j): b for j, b in self.bytes_in.items()}
         doc["seconds_last_put"] = {str(j): s for j, s in self.seconds_last_put.items()}
         doc["bytes_out_links"] = {str(j): b for j, b in self.bytes_out_links.items()}
+        doc["clipped"] = {str(j): f for j, f in self.clipped.items()}
+        doc["suspects"] = {str(j): why for j, why in self.suspects.items()}
         return json.dumps(doc)
 
     @classmethod
@@ -77,6 +81,8 @@ class RoundRecord:
         kwargs["bytes_in"] = {int(j): int(b) for j, b in (doc.get("bytes_in") or {}).items()}
         kwargs["seconds_last_put"] = {int(j): float(s) for j, s in (doc.get("seconds_last_put") or {}).items()}
         kwargs["bytes_out_links"] = {int(j): int(b) for j, b in (doc.get("bytes_out_links") or {}).items()}
+        kwargs["clipped"] = {int(j): float(f) for j, f in (doc.get("clipped") or {}).items()}
+        kwargs["suspects"] = {int(j): str(why) for j, why in (doc.get("suspects") or {}).items()}
         return cls(**kwargs)
 
     @property
@@ -121,7 +127,11 @@ class PlateauRule:
 
 
 class JsonLines:
-    """An append-only JSON-lines file written from several threads, flushed line by line."""
+    """An append-only JSON-lines file written from several threads, flushed line by line.
+
+    A line written after :meth:`close` is dropped: a network callback (a neighbour's token gone
+    while this robot shuts down) may still report after the robot closed its files, and it
+    used to end in "I/O operation on closed file" in the log."""
 
     def __init__(self, path: Path) -> None:
         self._file: TextIO = open(path, "a")
@@ -129,6 +139,8 @@ class JsonLines:
 
     def write_line(self, line: str) -> None:
         with self._lock:
+            if self._file.closed:
+                return
             self._file.write(line + "\n")
             self._file.flush()
 

@@ -262,11 +262,13 @@ class RobotTrainer:
             return
         self.consensus.begin_round(round_index, self._own(own), {j: self._as_list(t) for j, t in neighbours.items()})
 
-    def end_round(self, neighbours: Mapping[int, Mapping[str, Tensor]], own: Mapping[str, Tensor] | None = None) -> None:
-        """Dual update with theta_i^{k+1} (``own`` as in :meth:`begin_round`) and the theta_j^{k+1} heard."""
+    def end_round(self, neighbours: Mapping[int, Mapping[str, Tensor]], own: Mapping[str, Tensor] | None = None,
+                  rounds: Mapping[int, int] | None = None) -> None:
+        """Dual update with theta_i^{k+1} (``own`` as in :meth:`begin_round`) and the theta_j^{k+1}
+        heard (``rounds``: the round of each, when it may be a later one standing in)."""
         if self.consensus is None:
             return
-        self.consensus.dual_update(self._own(own), {j: self._as_list(t) for j, t in neighbours.items()})
+        self.consensus.dual_update(self._own(own), {j: self._as_list(t) for j, t in neighbours.items()}, rounds)
 
     def _own(self, own: Mapping[str, Tensor] | None) -> list[Tensor]:
         return self._as_list(own) if own is not None else [p.detach() for p in self.field.parameters()]

@@ -45,20 +45,24 @@ from protocol.membership import Topology  # noqa: E402
 from bench_consensus import coarse_initial_poses  # noqa: E402  (benchmarks/, on the path above)
 
 
-def mode_config(mode: str, topk: float) -> tuple[CompressionConfig, bool, bool]:
+FLAGS = ("exact", "anchor_exact", "robust_off")
+
+
+def mode_config(mode: str, topk: float) -> tuple[CompressionConfig, bool, bool, bool]:
     """``MODE[@key=value,...]``: a mode with CompressionConfig fields set, e.g.
     ``delta+ternary@ternary_threshold=1.0``; ``@exact`` runs C-ADMM on each robot's exact theta
     rather than on the copy its neighbours hold (the public copy, as the daemons do);
     ``@anchor_exact`` keeps the duals on the public copy but fixes the round's anchors from the
-    robot's exact theta_i^k."""
+    robot's exact theta_i^k; ``@robust_off`` takes every neighbour's model as it comes (robust
+    consensus off: the code before issue 43, the baseline of its no-attack cost)."""
     name, _, rest = mode.partition("@")
     fields: dict = {"compression": name, "topk_fraction": topk}
     items = [item for item in rest.split(",") if item]
     for item in items:
-        if item not in ("exact", "anchor_exact"):
+        if item not in FLAGS:
             key, _, value = item.partition("=")
             fields[key] = type(getattr(CompressionConfig(), key))(value)
-    return CompressionConfig(**fields), "exact" not in items, "anchor_exact" in items
+    return CompressionConfig(**fields), "exact" not in items, "anchor_exact" in items, "robust_off" not in items
 
 
 def run_mode(mode: str, split, neighbours, cfg: SwarmTrainingConfig, topk: float, ev: EvalSet,
@@ -66,8 +70,10 @@ def run_mode(mode: str, split, neighbours, cfg: SwarmTrainingConfig, topk: float
     """Train the swarm with snapshots in ``mode``; scores per robot and bytes per push."""
     t0 = time.time()
     robots = {i: r.views for i, r in split.robots.items()}
-    sim = Simulation(robots, neighbours, split.box_from_shared, cfg, initial_poses=initial)
-    compression, on_public, anchor_on_exact = mode_config(mode, topk)
+    compression, on_public, anchor_on_exact, robust = mode_config(mode, topk)
+    consensus = dataclasses.replace(cfg.consensus, robust=dataclasses.replace(cfg.consensus.robust, enabled=robust))
+    sim = Simulation(robots, neighbours, split.box_from_shared, dataclasses.replace(cfg, consensus=consensus),
+                     initial_poses=initial)
     sim.on_public, sim.anchor_on_exact = on_public, anchor_on_exact
     sim.wire = ProtocolWire(compression, next(iter(sim.thetas.values())), sorted(robots))
     sim.run()
@@ -83,6 +89,8 @@ def run_mode(mode: str, split, neighbours, cfg: SwarmTrainingConfig, topk: float
         "worst_translation": max(s["pose_translation"] for s in scores.values()),
         "bytes_per_link_round": statistics.fmean(pushes), "raw_float32_bytes": raw,
         "ratio": statistics.fmean(pushes) / raw, "seconds": time.time() - t0,
+        "clipped": sum(t.consensus.clipper.clipped_count for t in sim.trainers.values()),
+        "erratic": sum(t.consensus.clipper.erratic_count for t in sim.trainers.values()),
     }
 
 
@@ -152,7 +160,8 @@ def main() -> None:
 def _print_mode(mode: str, r: dict) -> None:
     print(f"  {mode:10s} PSNR {r['psnr']:.2f} dB, others-only {r['psnr_others']:.2f} dB | "
           f"{r['bytes_per_link_round'] / 1e6:.4f} MB per link per round, ratio {r['ratio']:.4f} "
-          f"({r['seconds']:.0f} s), worst pose {r['worst_rotation_deg']:.3f} deg / {r['worst_translation']:.4f}",
+          f"({r['seconds']:.0f} s), worst pose {r['worst_rotation_deg']:.3f} deg / {r['worst_translation']:.4f}, "
+          f"neighbours clipped {r['clipped']} times, erratic {r['erratic']} times",
           flush=True)
 
 

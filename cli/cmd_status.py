@@ -20,8 +20,8 @@ def status_table(latest: dict, now: float, swarm_name: str) -> Table:
     """One row per robot from its newest Status (``latest``: id -> (Status, received monotonic))."""
     table = Table(title=f"swarm {swarm_name} — {len(latest)} robot(s) heard")
     for col in ("robot", "round", "phase", "loss", "psnr", "pose est. (deg, |t|, s)", "frame", "heard", "in MB",
-                "out MB", "rejected", "ref", "alive", "seen"):
-        table.add_column(col, justify="right" if col not in ("phase", "frame", "heard", "alive") else "left")
+                "out MB", "rejected", "distrusts", "ref", "alive", "seen"):
+        table.add_column(col, justify="right" if col not in ("phase", "frame", "heard", "distrusts", "alive") else "left")
     for rid in sorted(latest):
         msg, seen = latest[rid]
         log_s, phi, t = msg.pose[0], msg.pose[1:4], msg.pose[4:7]
@@ -34,7 +34,7 @@ def status_table(latest: dict, now: float, swarm_name: str) -> Table:
             _frame_state(msg),
             ",".join(map(str, msg.neighbours_heard)) or "-",
             f"{msg.bytes_in / 1e6:.1f}", f"{msg.bytes_out / 1e6:.1f}",
-            str(sum(msg.rejected.values())), str(msg.reference),
+            str(sum(msg.rejected.values())), _suspects(msg), str(msg.reference),
             ",".join(map(str, sorted(msg.alive_ages))) or "-",
             f"{now - seen:.1f} s ago",
         )
@@ -52,10 +52,16 @@ def status_json(latest: dict, now: float, swarm_name: str) -> str:
             "robot": rid, "round": msg.round, "phase": msg.phase, "loss": msg.loss, "psnr": msg.psnr,
             "pose": list(msg.pose), "alignment": msg.alignment.value, "alignment_detail": msg.alignment_detail,
             "heard": list(msg.neighbours_heard), "bytes_in": msg.bytes_in, "bytes_out": msg.bytes_out,
-            "rejected": dict(msg.rejected), "reference": msg.reference, "alive": sorted(msg.alive_ages),
+            "rejected": dict(msg.rejected), "suspects": {str(j): why for j, why in sorted(msg.suspects.items())},
+            "reference": msg.reference, "alive": sorted(msg.alive_ages),
             "seen_s_ago": round(now - seen, 3),
         })
     return json.dumps({"swarm": swarm_name, "robots": robots}, indent=2)
+
+
+def _suspects(msg) -> str:
+    """The neighbours this robot does not trust and why (clipped, quarantined, ahead_of_pace, refused)."""
+    return ", ".join(f"[red]{j}: {why}[/red]" for j, why in sorted(msg.suspects.items())) or "-"
 
 
 def _frame_state(msg) -> str:

@@ -3,7 +3,7 @@
 Pure policy over a :class:`protocol.network.Network` (no torch, no Zenoh): one sender and one
 puller thread per neighbour, so a slow or cut link delays only that neighbour's copy; the
 mailbox of received snapshots; the round barrier (whom it waits for, whom it gives up on,
-whose newer snapshot stands in); and :func:`plan_catch_up` for a robot that fell behind.
+whose newer snapshot stands in, whose refused snapshots end its wait: ``protocol.evidence``).
 The daemon decides what to do with the snapshots; this module only moves and validates them.
 """
 
@@ -12,17 +12,18 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Literal, Mapping
+from typing import Any, Callable, Mapping
 
 from protocol import codec
 from protocol.compression import BaseBook, CompressionConfig, SnapshotEncoder
+from protocol.evidence import RefusalStreaks
 from protocol.keys import Keys
 from protocol.membership import LastHeard
 from protocol.messages import ModelSpec, Rejected, ThetaSnapshot
 from protocol.network import Network
 from protocol.rounds import Mailbox
 
-__all__ = ["ExchangeTiming", "SnapshotExchange", "NeighbourSender", "NeighbourPuller", "PullPacing", "plan_catch_up"]
+__all__ = ["ExchangeTiming", "SnapshotExchange", "NeighbourSender", "NeighbourPuller", "PullPacing"]
 
 Log = Callable[[str], None]  # a line of the robot's log (the caller prefixes who speaks)
 Event = Callable[..., None]  # event(kind, **fields)
@@ -91,6 +92,10 @@ class _NewestJobThread:
                 self._busy = False
                 self._cond.notify_all()
 
+
+#: Refusals that say nothing of the sender's model (a copy out of its round, one not addressed to
+#: us): they do not end the barrier's wait for it (``RefusalStreaks``).
+_NOT_AN_ANSWER = frozenset({"stale_round", "too_far_ahead", "ahead_of_sender", "bad_kind"})
 
 #: Deltas queued for one neighbour before they are replaced by one full snapshot.
 MAX_CHAIN = 64  # deltas queued for one slow link at most (the bytes rule below usually stops it first)
@@ -228,21 +233,6 @@ class PullPacing:
         return False
 
 
-def plan_catch_up(round_index: int, newest: Mapping[int, int | None], round_compute_s: float | None,
-                  max_neighbour_wait_s: float) -> tuple[Literal["train", "skip"], int] | None:
-    """What a robot at ``round_index`` does about neighbours two or more rounds ahead (their newest
-    snapshot rounds in ``newest``): nothing (None), train through to their round (their snapshots
-    stand in meanwhile; no steps lost) when that keeps them waiting at most ``max_neighbour_wait_s``,
-    or skip to their round. Without a measured round time (just started) it skips."""
-    ahead = [r for r in newest.values() if r is not None and r > round_index + 1]
-    if not ahead:
-        return None
-    target = max(ahead)
-    if round_compute_s is not None and (target - round_index) * round_compute_s <= max_neighbour_wait_s:
-        return "train", target
-    return "skip", target
-
-
 @dataclass(frozen=True)
 class ExchangeTiming:
     """The clocks of the exchange (the daemon's settings of the same names)."""
@@ -252,6 +242,7 @@ class ExchangeTiming:
     silent_after_s: float  # a neighbour that sent nothing for this long is not waited for
     join_timeout_s: float  # timeout of a query for a neighbour's newest snapshot
     resend_delay_s: float  # re-push our snapshot this long after a neighbour's link appears
+    refused_after: int = 3  # a neighbour whose snapshots were refused this many rounds in a row is not waited for
 
 
 class SnapshotExchange:
@@ -269,6 +260,7 @@ class SnapshotExchange:
         self._log, self._event, self._reject = log, event, reject
         self.expect: codec.Expectation | None = None  # None: our model is provisional, take nothing
         self._pacing = PullPacing(timing.pull_after_s, timing.round_timeout_s / 4)
+        self.refusals = RefusalStreaks(timing.refused_after)
         self._senders: dict[int, NeighbourSender] = {}
         self._pullers: dict[int, NeighbourPuller] = {}
         self._barrier_began: tuple[int, float] = (-1, 0.0)  # (round, monotonic) of the current barrier
@@ -365,6 +357,9 @@ class SnapshotExchange:
             self._pacing.pushed(msg.sender, msg.round, waited)
         except Rejected as e:
             self._reject(e.reason, f"{key}: {e.detail}")
+            if e.reason not in _NOT_AN_ANSWER and parsed.robot_id in self.neighbours and parsed.round is not None:
+                self.refusals.refused(parsed.robot_id, parsed.round)
+                self.mailbox.notify()  # the barrier stops waiting for it
         except ValueError as e:  # a foreign key on our subscription
             self._reject("garbage", f"{key}: {e}")
 
@@ -500,6 +495,10 @@ class SnapshotExchange:
                     self._pullers[j].offer(round_index)
         got = self.mailbox.wait(round_index, awaited, 0.0)
         waited = time.monotonic() - t0
+        for j in self.refusals.barrier_ended(round_index, got.items, reachable()):
+            self._event("refused_neighbour", sender=j, rounds=self.refusals.after)
+            self._log(f"round {round_index}: every snapshot of robot {j} was refused for {self.refusals.after} rounds "
+                      "though it is still heard; not waiting for it until one is accepted")
         if not got.complete:
             self._log(f"round {round_index}: no snapshot from {sorted(got.missing)} "
                       f"within {self.timing.round_timeout_s:.0f} s; going on with {sorted(got.items)}")
@@ -514,12 +513,14 @@ class SnapshotExchange:
 
     def _awaited(self, round_index: int, reachable: Callable[[], set[int]]) -> Callable[[], set[int]]:
         """Whom the barrier of ``round_index`` waits for: reachable neighbours without a snapshot of
-        that round or later, except those silent for ``silent_after_s`` (reported once each)."""
+        that round or later, except those silent for ``silent_after_s`` (reported once each) and
+        those whose snapshot was refused (``RefusalStreaks``)."""
         given_up: set[int] = set()
 
         def awaited() -> set[int]:
             missing = {j for j in reachable()
                        if (r := self.credible_round(j, round_index)) is None or r <= round_index}
+            missing -= {j for j in missing if self.refusals.not_awaited(j, round_index)}
             silent = self.last_heard.silent(missing, self.timing.silent_after_s)
             for j in silent - given_up:
                 given_up.add(j)

@@ -36,7 +36,13 @@ from protocol.untrusted import describe
 
 #: Bumped whenever the header or a body changes incompatibly; peers on another version are refused.
 #: 2: Status.alignment is an :class:`Alignment` value, with its free text in alignment_detail.
-SCHEMA_VERSION = 2
+#: 3: Status.suspects: the neighbours the sender does not trust, and why.
+SCHEMA_VERSION = 3
+
+#: Why a robot distrusts a neighbour (Status.suspects): its claimed round runs ahead of its pace,
+#: its models are clipped or move erratically (robust consensus), it is quarantined for that, or
+#: its snapshots are refused.
+SUSPICIONS = ("ahead_of_pace", "clipped", "erratic", "quarantined", "refused")
 
 #: Largest round / epoch number accepted (fits a signed 32-bit int on every platform).
 MAX_ROUND = 2**31 - 1
@@ -277,6 +283,8 @@ class Status:
     #: Liveness gossip: {robot id: seconds since the sender last had evidence it was alive}.
     #: Zenoh peers do not relay, so this is how robots learn about non-neighbours.
     alive_ages: dict[int, float] = field(default_factory=dict)
+    #: Neighbours the sender does not trust: {robot id: one of :data:`SUSPICIONS`}.
+    suspects: dict[int, str] = field(default_factory=dict)
     header: Header | None = None
 
     kind = KIND_STATUS
@@ -298,6 +306,7 @@ class Status:
         "seconds_compute",
         "seconds_wait",
         "alive_ages",
+        "suspects",
     )
 
 
@@ -460,6 +469,13 @@ def check_status_body(body: Any) -> dict[str, Any]:
     ):
         raise bad("alive_ages", "expected a list of [robot id, non-negative age in seconds]")
     out["alive_ages"] = {int(i): float(a) for i, a in ages}
+    suspects = body["suspects"]
+    if not isinstance(suspects, list) or len(suspects) > 1024 or not all(
+        isinstance(p, list) and len(p) == 2 and is_int(p[0]) and 0 <= p[0] <= MAX_ROUND and p[1] in SUSPICIONS
+        for p in suspects
+    ):
+        raise bad("suspects", f"expected a list of [robot id, one of {list(SUSPICIONS)}]")
+    out["suspects"] = {int(i): str(why) for i, why in suspects}
     return out
 
 
@@ -481,4 +497,5 @@ def status_body(msg: Status) -> dict[str, Any]:
         "seconds_compute": float(msg.seconds_compute),
         "seconds_wait": float(msg.seconds_wait),
         "alive_ages": [[int(i), float(a)] for i, a in sorted(msg.alive_ages.items())],
+        "suspects": [[int(i), str(why)] for i, why in sorted(msg.suspects.items())],
     }

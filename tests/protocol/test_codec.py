@@ -72,7 +72,7 @@ def test_encode_refuses_what_peers_would_reject():
 
 
 def test_status_round_trip_and_type_checks():
-    msg = status_message()
+    msg = status_message(suspects={3: "quarantined", 5: "ahead_of_pace"})
     got = decode(encode(msg), expectation(), kind="status")
     assert isinstance(got, Status)
     for name in Status.BODY_FIELDS + ("swarm", "sender", "round", "epoch"):
@@ -82,7 +82,9 @@ def test_status_round_trip_and_type_checks():
     body = msgpack.unpackb(payload)
     for field, value, reason in [("pose", [0.0] * 6, "bad_field"), ("loss", "low", "bad_field"),
                                  ("bytes_in", -1, "bad_field"), ("neighbours_heard", [True], "bad_field"),
-                                 ("psnr", float("nan"), "non_finite"), ("phase", 3, "bad_field")]:
+                                 ("psnr", float("nan"), "non_finite"), ("phase", 3, "bad_field"),
+                                 ("suspects", [[3, "evil"]], "bad_field"), ("suspects", [[-1, "refused"]], "bad_field"),
+                                 ("suspects", {"3": "refused"}, "bad_field")]:
         bad = dict(body, **{field: value})
         raw = msgpack.packb(bad)
         frame = codec.pack_frame(dict(header, raw_length=len(raw), payload_length=len(raw)), raw)

@@ -59,12 +59,15 @@ class Swarm:
     def run_dir(self, i: int) -> Path:
         return self.root / "run" / f"robot{i}"
 
-    def start(self, i: int, extra_env: dict | None = None, extra_args: list[str] = ()) -> subprocess.Popen:
+    def start(self, i: int, extra_env: dict | None = None, extra_args: list[str] = (),
+              hostile: str | None = None) -> subprocess.Popen:
+        """``hostile``: an attack of tests/system/hostile.py (the real daemon with one change)."""
         log = self.root / f"robot{i}.log"
         self.logs[i] = log
         env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1", **(extra_env or {}))
-        cmd = AGENT + ["up", "--id", str(i), "--data", str(self.root / f"robot{i}"),
-                       "--run-dir", str(self.run_dir(i)), *extra_args]
+        program = AGENT if hostile is None else [sys.executable, str(REPO / "tests/system/hostile.py"), hostile]
+        cmd = program + ["up", "--id", str(i), "--data", str(self.root / f"robot{i}"),
+                         "--run-dir", str(self.run_dir(i)), *extra_args]
         p = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=open(log, "a"), stderr=subprocess.STDOUT)
         self.procs[i] = p
         return p
@@ -150,10 +153,12 @@ def make_swarm(tmp: Path, robots: int = 3, topology: str = "full", frame: str = 
     return Swarm(root, ids)
 
 
-def simulate(swarm: Swarm, overrides: list[str] = (), compression=None):
+def simulate(swarm: Swarm, overrides: list[str] = (), compression=None, robots: list[int] | None = None,
+             forge=None):
     """The in-process simulation of the same swarm (same seeds), with 1 torch thread like the daemons;
     its snapshots go through the daemons' encode/decode with ``compression`` (a CompressionConfig;
-    None: the swarm file's ``[daemon.exchange]``)."""
+    None: the swarm file's ``[daemon.exchange]``). ``robots``: only these (the others never
+    heard); ``forge(sender, round, theta) -> theta or None``: what a hostile sender sends instead."""
     import torch
 
     from agent.data.folder import read_scene
@@ -164,11 +169,12 @@ def simulate(swarm: Swarm, overrides: list[str] = (), compression=None):
     torch.set_num_threads(1)
     cfg, base = load_swarm_file(swarm.swarm_file, list(overrides))
     topo = cfg.graph()
-    views = {i: load_views(swarm.root / f"robot{i}") for i in cfg.swarm.robots}
+    views = {i: load_views(swarm.root / f"robot{i}") for i in (robots or cfg.swarm.robots)}
     scene = read_scene(base / cfg.swarm.scene)
-    sim = Simulation(views, {i: topo.neighbours(i) for i in views}, scene.box_from_shared, cfg.training)
+    sim = Simulation(views, {i: topo.neighbours(i) & set(views) for i in views}, scene.box_from_shared, cfg.training)
     from agent.swarm import ProtocolWire
 
-    sim.wire = ProtocolWire(compression or cfg.daemon.exchange, next(iter(sim.thetas.values())), list(views))
+    wire = ProtocolWire(compression or cfg.daemon.exchange, next(iter(sim.thetas.values())), list(views))
+    sim.wire = wire if forge is None else (lambda i, k, theta: forge(i, k, wire(i, k, theta)))
     sim.run()
     return sim

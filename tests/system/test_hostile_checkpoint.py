@@ -1,9 +1,11 @@
 """`dinerf-agent up` on a run folder whose checkpoint is hostile, damaged or someone else's.
 
 Each is refused before any training: exit code 2, one line ``error: ...`` on stderr, no
-traceback, and the file is still there, byte for byte (the user may want to look at it). A
-pickle's payload never runs. The genuine checkpoints that the spoiled ones start from are made
-in this process exactly as the daemon makes them (same robot, same model signature).
+traceback, no hang (a FIFO), and the file is still there, byte for byte (the user may want to
+look at it). A pickle's payload never runs. The genuine checkpoints that the spoiled ones start
+from are made in this process exactly as the daemon makes them (same robot, same model
+signature); the out-of-range one carries a valid checksum (rounds and steps out of range:
+tests/unit/test_checkpoint.py). Only the temporary file of a killed save goes.
 """
 
 from __future__ import annotations
@@ -56,6 +58,18 @@ def _genuine(run, swarm, **kw):
     return run / CHECKPOINT
 
 
+def _out_of_range(run, swarm, spoil):
+    """A checkpoint whose checksum is valid but whose values no run can produce, beside the
+    temporary file a save killed mid-write left (pid 2**22 + 1 is above Linux's pid_max)."""
+    ck = genuine_checkpoint(swarm, robot_id=1)
+    spoil(ck)
+    RunFolder(run).save(ck)
+    (run / f".{CHECKPOINT}.{2**22 + 1}.0badc0de.tmp").write_bytes(b"half a save")
+
+
+STALE = f".{CHECKPOINT}.{2**22 + 1}.0badc0de.tmp"
+
+
 CASES = {
     "pickle": (lambda run, swarm: (run / CHECKPOINT).write_bytes(pickle.dumps(Payload(run / "pwned"))), "pickle"),
     "old_pickle": (lambda run, swarm: torch.save(Payload(run / "pwned"), run / LEGACY_CHECKPOINT), "older dinerf"),
@@ -68,6 +82,11 @@ CASES = {
     "directory": (lambda run, swarm: (run / CHECKPOINT).mkdir(), "is a directory"),
     "old_directory": (lambda run, swarm: (run / LEGACY_CHECKPOINT).mkdir(), "is a directory"),
     "empty": (lambda run, swarm: (run / CHECKPOINT).write_bytes(b""), "empty"),
+    "fifo": (lambda run, swarm: os.mkfifo(run / CHECKPOINT), "is a FIFO"),
+    "dev_zero": (lambda run, swarm: (run / CHECKPOINT).symlink_to("/dev/zero"), "outside"),
+    "nan_weights": (lambda run, swarm: _out_of_range(
+        run, swarm, lambda ck: ck.trainer["field"]["encoding.table"].view(-1).__setitem__(3, float("nan"))),
+        "trainer/field/encoding.table holds NaN"),
 }
 
 
@@ -77,7 +96,8 @@ def swarm(tmp_path_factory):
 
 
 def _snapshot(run):
-    return {p.name: (p.read_bytes() if p.is_file() else "dir") for p in run.iterdir()}
+    return {p.name: (p.read_bytes() if p.is_file() and not p.is_fifo() and not p.is_symlink() else "other")
+            for p in run.iterdir()}
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
@@ -97,5 +117,7 @@ def test_up_refuses_a_bad_checkpoint_in_one_line_and_keeps_it(swarm, tmp_path, c
     assert "Traceback" not in res.stdout + res.stderr
     assert not (run / "pwned").exists(), "the checkpoint's code ran"
     after = _snapshot(run)
-    assert {k: v for k, v in after.items() if k in before} == before, "the refused file was changed"
+    assert STALE not in after, "the temporary file of a killed save is still there"
+    assert {k: v for k, v in after.items() if k in before} == {k: v for k, v in before.items() if k != STALE}, \
+        "the refused file was changed"
     shutil.rmtree(run)

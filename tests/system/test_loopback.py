@@ -34,8 +34,11 @@ def test_key_expressions_match_as_in_zenoh():
     assert key_matches("dinerf/s/**", "dinerf/s/theta/1/17/2") and key_matches("dinerf/**", "dinerf")
 
 
-def run_in_process(swarm, training_cfg, daemon_cfg, links=None, warn=None) -> dict[int, Daemon]:
-    """Every robot of ``swarm`` as a Daemon thread on one LoopbackHub; returns them when all are done."""
+def run_in_process(swarm, training_cfg, daemon_cfg, links=None, warn=None, hostile: dict[int, str] | None = None
+                   ) -> dict[int, Daemon]:
+    """Every robot of ``swarm`` as a Daemon thread on one LoopbackHub; returns them when all are done.
+    ``hostile``: robot -> an attack of tests/system/hostile.py for that robot."""
+    from tests.system.hostile import install
     from cli.swarm_file import load_swarm_file
 
     cfg, base = load_swarm_file(swarm.swarm_file)
@@ -49,6 +52,8 @@ def run_in_process(swarm, training_cfg, daemon_cfg, links=None, warn=None) -> di
         daemons[i] = Daemon(i, load_views(swarm.root / f"robot{i}"), scene.box_from_shared,
                             SwarmIdentity(cfg.swarm.name, topo), training_cfg or cfg.training,
                             daemon_cfg or cfg.daemon, net, swarm.run_dir(i), log=lambda line: None, warn=warn)
+        if i in (hostile or {}):
+            install(hostile[i].split("+"), robot=daemons[i])
 
     def run(d: Daemon) -> None:
         try:
@@ -68,18 +73,26 @@ def run_in_process(swarm, training_cfg, daemon_cfg, links=None, warn=None) -> di
     return daemons
 
 
+QUICK = {"startup_wait_s": 5.0, "round_timeout_s": 30.0, "initial_pose": "identity", "linger_s": 0.2, "threads": 1}
+
+
+def _as_simulated(swarm, sim, i: int) -> list:
+    """Robot i's records, after checking that its field is the simulation's, bit for bit."""
+    ck = RunFolder(swarm.run_dir(i), create=False).load()
+    mine = sim.robots[i].trainer.field.state_dict()
+    assert all(torch.equal(mine[k], ck.trainer["field"][k]) for k in mine), f"robot {i} differs from the simulation"
+    records = read_telemetry(RunFolder(swarm.run_dir(i)).telemetry)
+    assert [r.round for r in records] == [1, 2, 3, 4, 5]
+    return records
+
+
 def test_a_line_of_three_in_one_process_matches_the_simulation(tmp_path):
     torch.set_num_threads(1)
     swarm = make_swarm(tmp_path, robots=3, topology="line")
-    run_in_process(swarm, None, from_dict(DaemonConfig, {"startup_wait_s": 5.0, "round_timeout_s": 30.0, "initial_pose": "identity",
-                                                        "linger_s": 0.2, "threads": 1}))
+    run_in_process(swarm, None, from_dict(DaemonConfig, QUICK))
     sim = simulate(swarm)
     for i in swarm.robots:
-        ck = RunFolder(swarm.run_dir(i), create=False).load()
-        mine = sim.robots[i].trainer.field.state_dict()
-        assert all(torch.equal(mine[k], ck.trainer["field"][k]) for k in mine), f"robot {i} differs from the simulation"
-        records = read_telemetry(RunFolder(swarm.run_dir(i)).telemetry)
-        assert [r.round for r in records] == [1, 2, 3, 4, 5]
+        records = _as_simulated(swarm, sim, i)
         line = {1: [2], 2: [1, 3], 3: [2]}[i]
         assert all(r.heard == line for r in records), records
         # A neighbour a round ahead may land in the round before (the windows are by time), but
@@ -174,3 +187,19 @@ def test_a_compressed_line_of_three_hears_everyone_at_a_fraction_of_the_bytes(tm
         assert all(torch.equal(mine[k], ck[k]) for k in mine), f"robot {i} differs from the compressed simulation"
         print(f"{mode} robot {i}: wire ratio {[round(r.wire_ratio, 4) for r in records]}, push bytes in the "
               f"simulation {sim.wire.sent[i]}")
+
+
+def test_a_forged_far_future_reply_to_the_join_never_becomes_a_neighbours_base(tmp_path):
+    """Robot 3 trains and pushes honestly, but claims the last round from the start and answers
+    every ``latest`` query with a forged model of it (tests/system/hostile.py ``future``). The
+    join asks for nothing past the quorum of the claims, so the forgery never becomes robot 3's
+    base at the others (it did, and none of robot 3's real deltas fitted it: every barrier waited
+    out the round timeout), and nobody moves to its round: all three end bit-identical to the
+    honest simulation, robot 3 included, having waited less than a second in any round."""
+    torch.set_num_threads(1)
+    swarm = make_swarm(tmp_path, robots=3, topology="full")
+    run_in_process(swarm, None, from_dict(DaemonConfig, QUICK), hostile={3: "future"})
+    sim = simulate(swarm)
+    for i in swarm.robots:
+        records = _as_simulated(swarm, sim, i)
+        assert max(r.seconds_wait for r in records) < 1.0, records

@@ -98,3 +98,48 @@ def test_round_snapshots_are_kept_per_round_and_checked_for_their_robot(robot, t
         folder.load_round(3, robot_id=2)
     with pytest.raises(CheckpointError, match="no snapshot of round 2"):
         folder.load_round(2, robot_id=1)
+
+
+@pytest.mark.parametrize("spoil, why", [
+    (lambda ck: setattr(ck, "round", 10**12), "round 1000000000000 is outside 0..2"),
+    (lambda ck: setattr(ck, "round", -3), "round -3 is outside"),
+    (lambda ck: ck.trainer.__setitem__("step", 10**9), "1000000000 steps after 1 rounds of 12"),
+    (lambda ck: ck.trainer.__setitem__("step", -1), "-1 steps"),
+    (lambda ck: ck.trainer["field"]["encoding.table"].view(-1).__setitem__(5, float("nan")),
+     "trainer/field/encoding.table holds NaN"),
+    (lambda ck: ck.trainer["optimizer"]["state"][0]["exp_avg_sq"].view(-1).__setitem__(0, float("inf")),
+     "trainer/optimizer/state/0/exp_avg_sq holds NaN or infinite"),
+    (lambda ck: ck.box_from_shared.__setitem__((0, 0), float("nan")), "box_from_shared holds NaN"),
+])
+def test_a_checksum_valid_checkpoint_with_values_out_of_range_is_refused(robot, tmp_path, spoil, why):
+    """Whoever can write the run folder can write a valid checksum: every field is checked too."""
+    trainer = _trainer(robot)
+    trainer.begin_round(0, _neighbour(trainer))
+    trainer.train(2)
+    ck = _checkpoint(trainer, robot)
+    ck.box_from_shared = ck.box_from_shared.clone()
+    spoil(ck)
+    folder = RunFolder(tmp_path / "run")
+    folder.save(ck)
+    with pytest.raises(CheckpointError, match=why) as e:
+        folder.load(robot_id=1)
+    assert "\n" not in str(e.value)
+
+
+def test_temporaries_of_killed_saves_are_removed_and_nothing_else(tmp_path):
+    import os
+    import subprocess
+
+    run = tmp_path / "run"
+    (run / "rounds").mkdir(parents=True)
+    gone = subprocess.Popen(["true"])
+    gone.wait()  # a pid that no longer runs
+    stale = [run / f".checkpoint.safetensors.{gone.pid}.0badc0de.tmp", run / "rounds" / f".00003.safetensors.{gone.pid}.12345678.tmp"]
+    live = run / f".checkpoint.safetensors.{os.getppid()}.abcdef01.tmp"  # its writer still runs
+    keep = [live, run / "checkpoint.safetensors", run / "notes.tmp", run / f".x.{gone.pid}.nothex!.tmp"]
+    for p in stale + keep:
+        p.write_bytes(b"x" * 10)
+    (run / f".link.{gone.pid}.aaaaaaaa.tmp").symlink_to(run / "checkpoint.safetensors")
+    assert RunFolder(run).remove_stale_temporaries() == (2, 20)
+    assert not any(p.exists() for p in stale) and all(p.exists() for p in keep)
+    assert (run / f".link.{gone.pid}.aaaaaaaa.tmp").is_symlink()  # only regular files go

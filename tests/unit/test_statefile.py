@@ -169,3 +169,35 @@ def test_writing_over_a_directory_fails_and_keeps_it(tmp_path):
     with pytest.raises(OSError):
         files.atomic_write_text(tmp_path / "d", "x")
     assert (tmp_path / "d").is_dir() and sorted(os.listdir(tmp_path)) == ["d"]
+
+
+def test_a_fifo_a_device_and_a_symlink_out_of_the_folder_are_refused_without_reading(tmp_path):
+    """A FIFO would block the reader for ever and /dev/zero fill its memory: neither is opened as
+    a state file. A symlink is followed only within the folder given."""
+    import threading
+
+    fifo = tmp_path / "fifo.safetensors"
+    os.mkfifo(fifo)
+    done: list = []
+    reader = threading.Thread(target=lambda: done.append(pytest.raises(CheckpointError, read_state, fifo, "test")))
+    reader.start()
+    reader.join(timeout=10)
+    assert done and "is a FIFO" in str(done[0].value), "read_state hung on a FIFO"
+    (tmp_path / "zero.safetensors").symlink_to("/dev/zero")
+    with pytest.raises(CheckpointError, match="is a character device"):
+        read_state(tmp_path / "zero.safetensors", "test")
+    with pytest.raises(CheckpointError, match="outside"):
+        read_state(tmp_path / "zero.safetensors", "test", within=tmp_path)
+    write_state(tmp_path / "real.safetensors", "test", {"a": torch.ones(1)})
+    (tmp_path / "inside.safetensors").symlink_to("real.safetensors")
+    assert torch.equal(read_state(tmp_path / "inside.safetensors", "test", within=tmp_path)["a"], torch.ones(1))
+
+
+def test_a_file_larger_than_the_machine_can_hold_is_refused_before_reading(tmp_path):
+    from agent.statefile import memory_limit
+
+    path = tmp_path / "huge.safetensors"
+    with open(path, "wb") as f:
+        f.truncate(memory_limit() + 1)  # sparse: no disk used
+    with pytest.raises(CheckpointError, match="more than the"):
+        read_state(path, "test")
