@@ -190,7 +190,7 @@ def run_daemons(attack: str, args, tmp: Path, ev: EvalSet) -> dict:
     views, width = _procedural_size(args.data)
     swarm = make_swarm(tmp / attack.replace("+", "_"), robots=args.robots, topology=args.topology,
                        training=_daemon_training(args), daemon={"round_timeout_s": args.round_timeout, "eval_every": 0},
-                       views=views, width=width, overlap=args.overlap, seed=args.seed)
+                       views=views, width=width, overlap=args.overlap, seed=args.seed, secure=True)
     hostile = max(swarm.robots)
     honest = [i for i in swarm.robots if i != hostile]
     mute = None

@@ -127,7 +127,9 @@ class RefusalStreaks:
     A refused snapshot of round k or later is that neighbour's answer for round k: bad, but an
     answer; it will not send another, so the barrier of round k does not wait for it. A neighbour
     whose barriers ended ``after`` times in a row with a refusal and nothing accepted is not
-    waited for at all, until one of its snapshots is accepted again. Thread-safe."""
+    waited for at all, until one of its snapshots is accepted again. Only a network whose
+    senders are authenticated (``Network.senders_authenticated``) reports refusals: elsewhere
+    anyone can put a bad message on a robot's keys and end the wait for the real one. Thread-safe."""
 
     def __init__(self, after: int = 3) -> None:
         self.after = after

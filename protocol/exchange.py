@@ -357,7 +357,8 @@ class SnapshotExchange:
             self._pacing.pushed(msg.sender, msg.round, waited)
         except Rejected as e:
             self._reject(e.reason, f"{key}: {e.detail}")
-            if e.reason not in _NOT_AN_ANSWER and parsed.robot_id in self.neighbours and parsed.round is not None:
+            if (e.reason not in _NOT_AN_ANSWER and self.net.senders_authenticated and parsed.robot_id in self.neighbours
+                    and parsed.round is not None):
                 self.refusals.refused(parsed.robot_id, parsed.round)
                 self.mailbox.notify()  # the barrier stops waiting for it
         except ValueError as e:  # a foreign key on our subscription

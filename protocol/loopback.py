@@ -108,6 +108,8 @@ class _Sub:
 class LoopbackNetwork:
     """One robot's end of a :class:`LoopbackHub` (implements :class:`protocol.network.Network`)."""
 
+    senders_authenticated = True  # one process: every robot puts only on its own keys
+
     def __init__(self, hub: LoopbackHub, keys: Keys, robot_id: int) -> None:
         keys.alive(robot_id)  # validates the id
         self.hub, self.keys, self.robot_id = hub, keys, robot_id

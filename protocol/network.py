@@ -50,6 +50,10 @@ class Handle(Protocol):
 
 
 class Network(Protocol):
+    #: Whether a message on robot j's keys can only come from robot j (mutual TLS and the roster's
+    #: access control): only then does a refused message say anything about robot j.
+    senders_authenticated: bool
+
     def declare_alive(self) -> None:
         """Hold this robot's liveliness token until the network is closed (or the process dies)."""
 

@@ -221,6 +221,7 @@ class ZenohTransport:
 
     def __init__(self, cfg: TransportConfig, keys: Keys, robot_id: int):
         cfg.validate()
+        self.senders_authenticated = cfg.mtls() and cfg.access_control is not None
         keys.alive(robot_id)  # validates the id
         self.cfg = cfg
         self.keys = keys

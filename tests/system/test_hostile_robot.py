@@ -44,7 +44,7 @@ def test_a_robot_claiming_the_last_round_with_a_forged_model_and_nan_snapshots_s
     round timeout for it, and end exactly as the two of them alone; both name robot 3, and
     ``status`` shows it. (A neighbour whose snapshots are refused round after round and nothing
     else: benchmarks/bench_robust.py --part daemons, and tests/unit/test_catch_up.py.)"""
-    swarm = make_swarm(tmp_path, robots=3, topology="full")
+    swarm = make_swarm(tmp_path, robots=3, topology="full", secure=True)  # a captured robot: its own certificate
     try:
         swarm.start(1)
         swarm.start(2)
@@ -86,7 +86,7 @@ def test_a_robot_poisoning_its_own_snapshots_is_quarantined_at_once_and_changes_
     they would train on 1e30 anchors: tests/unit/test_robust.py)."""
     from tests.system.hostile import forge
 
-    swarm = make_swarm(tmp_path, robots=3, topology="full")
+    swarm = make_swarm(tmp_path, robots=3, topology="full", secure=True)  # a captured robot: its own certificate
     try:
         swarm.start(1)
         swarm.start(2)
