@@ -97,6 +97,34 @@ class OccupancyGrid:
             occupied = self.density >= self.density.max()
         self.occupied = occupied
 
+    @torch.no_grad()
+    def open_frustum(self, c2w_box: Tensor, intrinsics: Tensor, width: int, height: int, unbounded: bool) -> int:
+        """Mark every cell a new camera sees as occupied (``c2w_box`` [4, 4] in box coordinates,
+        OpenGL; ``intrinsics`` [4]); returns how many were closed before.
+
+        A keyframe that arrives while the robot trains looks at space the grid may have pruned,
+        because no keyframe had trained it yet: marching would skip it and the field could never
+        learn it. Its density is set to twice the threshold, so the cells stay open for about a
+        dozen visits of the update (a few hundred steps) unless the field fills them first."""
+        r = self.cfg.resolution
+        x = (self._cell_xyz.float() + 0.5) * (2.0 / r) - 1  # [C, 3] grid coordinates
+        if unbounded:  # the inverse of agent.nerf.contraction.contract
+            u = 2 * x
+            n = u.abs().amax(-1, keepdim=True).clamp(max=1.999)
+            x = torch.where(n > 1, u / n / (2 - n), u)
+        w2c = torch.linalg.inv(c2w_box.to(self.device).float())
+        p = x @ w2c[:3, :3].T + w2c[:3, 3]  # [C, 3] camera coordinates, looking down -z
+        depth = -p[:, 2]
+        fx, fy, cx, cy = [float(v) for v in intrinsics]
+        safe = depth.clamp(min=1e-6)
+        col, row = cx + fx * p[:, 0] / safe, cy - fy * p[:, 1] / safe
+        seen = (depth > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
+        opened = int((seen & ~self.occupied).sum())
+        value = 2.0 * self.cfg.density_threshold
+        self.density[seen] = self.density[seen].clamp(min=value)
+        self.occupied |= seen
+        return opened
+
     # --- persistence (checkpoints) -------------------------------------------------------
     def state_dict(self) -> dict[str, Tensor]:
         return {"density": self.density.clone(), "occupied": self.occupied.clone()}
