@@ -1,0 +1,162 @@
+"""The views a robot has now (agent.data.stream): keyframes from a bag as they arrive, on disk,
+a bounded few in memory, sampled with a bias to the newest, held out by the loader's rule."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+import torch
+
+from agent.data.ros import RosBagConfig, extract_keyframes
+from agent.data.ros.config import KeyframeConfig
+from agent.data.ros.intake import FrameIntake, bag_image_topic, replay_bag
+from agent.data.ros.keyframes import OnlineKeyframer, plan_keyframes
+from agent.data.stream import StreamConfig, ViewStream
+from agent.geometry import box_from_center
+from agent.swarm import SwarmTrainingConfig, build_robot, own_holdout_split
+from agent.trainer import TrainConfig
+from tests.data.bags import camera_bag
+
+
+def _intake(bag, cfg=None, **kw) -> FrameIntake:
+    cfg = cfg or RosBagConfig()
+    image, info = bag_image_topic(bag, cfg)
+    return FrameIntake(cfg, image, info, **kw)
+
+
+def _fed(bag, cfg=None) -> FrameIntake:
+    intake = _intake(bag, cfg)
+    replay_bag(bag, intake, 0.0, threading.Event())
+    return intake
+
+
+def test_online_rule_triggers_where_the_offline_plan_does():
+    rng = np.random.default_rng(0)
+    c2w = np.tile(np.eye(4), (60, 1, 1))
+    c2w[:, 0, 3] = np.cumsum(rng.uniform(0, 0.2, 60))  # irregular steps along x
+    cfg = KeyframeConfig(min_translation=0.5, min_rotation_deg=5, sharpness_window=1, max_keyframes=0)
+    plan = plan_keyframes(c2w, cfg)
+    online = OnlineKeyframer(cfg)
+    kept = [i for i in range(60) if online.offer(c2w[i], i, lambda _: 1.0) is not None]
+    assert kept == [w[0] for w in plan.windows] and len(kept) > 5
+    # the sharpest of each window, and a budget: the rest is dropped and counted
+    online = OnlineKeyframer(KeyframeConfig(min_translation=0.5, sharpness_window=3, max_keyframes=4))
+    kept = [k for i in range(60) if (k := online.offer(c2w[i], i, lambda f: -abs(f - 41))) is not None]
+    assert len(kept) == 4 and online.dropped > 0
+
+
+def test_intake_poses_keyframes_as_the_bag_loader_does(tmp_path):
+    bag = camera_bag(tmp_path / "bag", n=10, moves=0.5)
+    cfg = RosBagConfig(keyframes=KeyframeConfig(sharpness_window=1))
+    intake = _fed(bag, cfg)
+    online = intake.take() + intake.finish()
+    extract_keyframes(bag, tmp_path / "kf", cfg)
+    import json
+
+    offline = {f["file_path"].split("/")[-1][:-4]: np.array(f["transform_matrix"])
+               for f in json.loads((tmp_path / "kf" / "transforms.json").read_text())["frames"]}
+    assert [k.name for k in online] == sorted(offline)
+    for k in online:
+        np.testing.assert_allclose(k.c2w, offline[k.name], atol=1e-6)
+        assert k.image.shape == (12, 16, 3)
+
+
+def test_an_image_ahead_of_tf_waits_then_is_posed(tmp_path):
+    bag = camera_bag(tmp_path / "bag", n=4, moves=1.0)
+    intake = _intake(bag, RosBagConfig(keyframes=KeyframeConfig(sharpness_window=1)), tf_wait_s=30)
+    from agent.data.ros.bag import _Bag
+
+    b = _Bag(bag)
+    msgs = list(b.messages(b.connections))
+    b.close()
+    for conn, _, msg in [m for m in msgs if m[0].topic != "/tf"]:  # images before any /tf
+        intake.feed(conn.topic, conn.msgtype, msg)
+    assert intake.take() == [] and len(intake._pending) == 4
+    for conn, _, msg in [m for m in msgs if m[0].topic == "/tf"]:
+        intake.feed(conn.topic, conn.msgtype, msg)
+    assert len(intake.take()) == 4 and not intake.skipped
+
+
+def _stream(tmp_path, n=30, every=5, capacity=300, **cfg) -> ViewStream:
+    bag = camera_bag(tmp_path / "bag", n=n, moves=0.5)
+    intake = _fed(bag, RosBagConfig(keyframes=KeyframeConfig(sharpness_window=1, max_keyframes=0)))
+    stream = ViewStream(StreamConfig(**cfg), intake, tmp_path / "keyframes", None, every, capacity)
+    stream.ended.set()
+    return stream
+
+
+def test_held_out_as_the_loader_splits_and_capacity_drops(tmp_path):
+    stream = _stream(tmp_path, n=30, every=5, capacity=20)
+    stream.admit()
+    names = [f["file_path"] for f in stream.store.frames]
+    assert len(names) == 30
+    index = list(range(30))
+    keep = [i for i in index if i % 5 != 4]
+    assert [f["file_path"] for f in stream._rows] == [names[i] for i in keep][:20]
+    assert [f["file_path"] for f in stream._held] == [names[i] for i in index if i % 5 == 4]
+    s = stream.round_stats()
+    assert (s.admitted, s.held_out, s.keyframes, s.dropped) == (24, 6, 20, 4)
+    assert s.coverage is not None and s.coverage[0] > 0
+    assert stream.round_stats().admitted == 0  # per round
+    # a restart reads the same folder back and does not add the same frames twice
+    again = ViewStream(StreamConfig(), _fed(tmp_path / "bag", RosBagConfig(keyframes=KeyframeConfig(
+        sharpness_window=1, max_keyframes=0))), tmp_path / "keyframes", None, 5, 20)
+    again.ended.set()
+    again.admit()
+    assert len(again.store.frames) == 30 and len(again._rows) == 20
+
+
+def _trained(tmp_path, **cfg):
+    stream = _stream(tmp_path, n=40, every=0, working_set=8, recent_keyframes=2, refresh_every=1, **cfg)
+    stream.intake_keyframes = stream._arrived()
+    stream._admit(stream.intake_keyframes[:4])
+    views = stream.initial_views()
+    training = SwarmTrainingConfig(rounds=1, steps_per_round=4, own_holdout_every=0,
+                                   train=TrainConfig(rays_per_step=64))
+    setup = build_robot(0, views, box_from_center(torch.tensor([10.0, 0, 0]), torch.tensor(15.0)), training,
+                        stream=stream)
+    return stream, setup
+
+
+def test_memory_is_bounded_and_every_keyframe_comes_back(tmp_path):
+    stream, setup = _trained(tmp_path)
+    buffer = stream._buffer
+    stream._admit(stream.intake_keyframes[4:])
+    assert len(stream._rows) == 40 and stream._buffer is buffer and buffer.shape[0] == 8
+    seen = set()
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(300):
+        rows = stream.sample(64, gen, torch.device("cpu"))[0]
+        seen |= set(rows.tolist())
+        assert len(set(int(r) for r in stream._slot_row)) <= 8
+    assert seen == set(range(40))  # the old ones come back in turn
+    assert int(stream._slot_row.max()) == 39 and 38 in stream._slot_row.tolist()  # the newest stay in
+
+
+@pytest.mark.parametrize("sampling", ["recency", "uniform"])
+def test_recency_favours_the_newest(tmp_path, sampling):
+    stream, setup = _trained(tmp_path, sampling=sampling, recent_fraction=0.5)
+    stream._admit(stream.intake_keyframes[4:])
+    gen = torch.Generator().manual_seed(0)
+    rows = torch.cat([stream.sample(256, gen, torch.device("cpu"))[0] for _ in range(50)])
+    newest = float((rows >= 38).float().mean())
+    expected = 0.5 + 0.5 * 2 / 8 if sampling == "recency" else 2 / 8
+    assert newest == pytest.approx(expected, abs=0.03)
+
+
+def test_training_on_a_growing_set_keeps_its_shapes_and_opens_the_grid(tmp_path):
+    stream, setup = _trained(tmp_path)
+    trainer = setup.trainer
+    assert trainer.view_phi.shape[0] == 300 and trainer.appearance.params.shape[0] == 300
+    trainer.train(4)
+    state = trainer.state_dict()
+    trainer.grid.occupied[:] = False  # as if pruned: nothing of the new keyframes' view was trained yet
+    before = trainer.grid.occupied.sum()
+    stream._admit(stream.intake_keyframes[4:10])
+    assert trainer.grid.occupied.sum() > before
+    np.testing.assert_allclose(trainer.c2w_local[9].numpy(), np.array(stream._rows[9]["transform_matrix"]), atol=1e-6)
+    trainer.train(4)
+    trainer.load_state_dict(state)  # checkpoints from before the growth still load
+    assert trainer.step == 4
