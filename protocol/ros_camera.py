@@ -104,16 +104,16 @@ class _Seen:
 
 
 class RosTopicSubscriber:
-    """Subscribes to ROS 2 topics (``{topic: ros type}``) as a Zenoh client of ``connect``."""
+    """Subscribes to ROS 2 topics (``(topic, ros type)`` pairs) as a Zenoh client of ``connect``."""
 
-    def __init__(self, connect: list[str], topics: dict[str, str], on_message: Callable[[RosMessage], None],
+    def __init__(self, connect: list[str], topics: Iterable[tuple[str, str]], on_message: Callable[[RosMessage], None],
                  domain_id: int = 0, on_refused: Callable[[str, str], None] | None = None) -> None:
         if not connect:
             raise ValueError("no endpoint to connect to (the robot's Zenoh router, e.g. tcp/localhost:7447)")
-        self.connect, self.topics, self.domain_id = list(connect), dict(topics), domain_id
-        self.patterns = {t: topic_key_pattern(domain_id, t, ty) for t, ty in self.topics.items()}
+        self.connect, self.topics, self.domain_id = list(connect), set(topics), domain_id
+        self.patterns = {(t, ty): topic_key_pattern(domain_id, t, ty) for t, ty in self.topics}
         self.on_message, self.on_refused = on_message, on_refused or (lambda reason, detail: None)
-        self.expected_hash = {ty: type_hash(ty) for ty in self.topics.values()}
+        self.expected_hash = {ty: type_hash(ty) for _, ty in self.topics}
         self.refused: dict[str, int] = {}
         self.received = 0
         self.duplicates = 0
@@ -127,7 +127,7 @@ class RosTopicSubscriber:
             self._session = zenoh.open(_client_config(self.connect))
         except zenoh.ZError as e:
             raise ConnectionError(f"cannot open a Zenoh client session to {self.connect}: {e}") from None
-        for topic, pattern in self.patterns.items():
+        for (topic, _), pattern in self.patterns.items():
             if topic in TRANSIENT_TOPICS:
                 sub = zenoh.ext.declare_advanced_subscriber(
                     self._session, pattern, self._on_sample,
@@ -160,7 +160,7 @@ class RosTopicSubscriber:
             _, topic, ros_type, hash_ = parse_topic_key(key)
         except ValueError as e:
             return self._refuse("bad_key", str(e))
-        if self.topics.get(topic) != ros_type:
+        if (topic, ros_type) not in self.topics:
             return self._refuse("bad_key", f"{key}: not a subscribed topic and type")
         if hash_ not in (self.expected_hash[ros_type], HASH_NOT_SUPPORTED):
             return self._refuse("type_hash", f"{topic}: type hash {hash_} is not {ros_type}'s as this robot knows "

@@ -86,6 +86,7 @@ class StreamRound:
     dropped: int  # frames that became no keyframe this round: no pose, or over capacity
     keyframes: int  # training keyframes so far
     held_out_total: int
+    dropped_total: int
     newest_age_s: float | None  # since the newest keyframe reached the robot
     coverage: list[float] | None  # extent of the camera centres so far, per axis (local frame units)
 
@@ -99,6 +100,9 @@ class _Store:
         self.frames: list[dict] = []
         self.camera: dict = {}
         path = folder / "transforms.json"
+        if (folder / "bag.json").is_file():
+            raise DataError(f"{folder}: keyframes of a bag loaded at start, not of a stream (use another --run-dir, "
+                            "or move keyframes/ away)")
         if path.is_file():  # a restart: the keyframes of this run stay its keyframes
             try:
                 doc = json.loads(path.read_text())
@@ -331,6 +335,7 @@ class ViewStream:
         out = StreamRound(
             admitted=self._counts["admitted"], held_out=self._counts["held_out"],
             dropped=dropped - self._dropped_before, keyframes=len(self._rows), held_out_total=len(self._held),
+            dropped_total=dropped,
             newest_age_s=None if self._newest_received is None else max(time.time() - self._newest_received, 0.0),
             coverage=None if self._lo is None else [float(x) for x in self._hi - self._lo])
         self._counts = {"admitted": 0, "held_out": 0}

@@ -21,8 +21,8 @@ from tests.data.bags import T0, camera_bag
 from tests.protocol.helpers import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
-TOPICS = {"/camera/image_raw": "sensor_msgs/msg/Image", "/camera/camera_info": "sensor_msgs/msg/CameraInfo",
-          "/tf": "tf2_msgs/msg/TFMessage", "/tf_static": "tf2_msgs/msg/TFMessage"}
+TOPICS = [("/camera/image_raw", "sensor_msgs/msg/Image"), ("/camera/camera_info", "sensor_msgs/msg/CameraInfo"),
+          ("/tf", "tf2_msgs/msg/TFMessage"), ("/tf_static", "tf2_msgs/msg/TFMessage")]
 
 
 def test_keys_are_rmw_zenohs():
