@@ -40,7 +40,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from agent.config_io import check
+from agent.config_io import InvalidValue, check
 from agent.data.folder import matrix_to_list, write_png
 from agent.data.images import read_image, resize_image, target_size
 from agent.data.ros.intake import FrameIntake, Keyframe
@@ -71,8 +71,6 @@ class StreamConfig:
               recent_fraction="in [0, 1]", working_set=">= 2", refresh_every=">= 1", tf_wait_s=">= 0",
               domain_id="in [0, 232]", eval_views=">= 1")
         if self.recent_keyframes >= self.working_set:
-            from agent.config_io import InvalidValue
-
             raise InvalidValue("recent_keyframes", f"must be below working_set ({self.working_set}), got "
                                f"{self.recent_keyframes}")
 

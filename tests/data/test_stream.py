@@ -160,3 +160,19 @@ def test_training_on_a_growing_set_keeps_its_shapes_and_opens_the_grid(tmp_path)
     trainer.train(4)
     trainer.load_state_dict(state)  # checkpoints from before the growth still load
     assert trainer.step == 4
+
+
+def test_the_round_line_and_status_say_what_the_stream_did():
+    from agent.telemetry import RoundRecord
+    from cli.cmd_status import _views
+    from tests.protocol.helpers import status_message
+
+    record = RoundRecord(robot=1, round=3, loss=0.01, pose_rotation_deg=0.0, pose_translation=[0, 0, 0], pose_scale=1.0,
+                         keyframes=42, keyframes_admitted=3, keyframes_held_out=1, keyframes_dropped=0,
+                         keyframe_age_s=0.4, coverage=[2.0, 1.0, 0.25])
+    assert "keyframes 42 (+3, held out +1, dropped +0) newest 0.4 s ago, area 2.00 x 1.00 x 0.25" in record.log_line(10)
+    assert RoundRecord.from_dict(__import__("json").loads(record.to_json())) == record
+    assert "keyframes" not in RoundRecord(robot=1, round=3, loss=0.01, pose_rotation_deg=0.0, pose_translation=[0, 0, 0],
+                                          pose_scale=1.0).log_line(10)
+    views = {"keyframes": 42, "held_out": 5, "dropped": 1, "newest_age_s": 0.4, "coverage": [2.0, 1.0, 0.25]}
+    assert _views(status_message(views=views)) == "42 (+5 held, 1 dropped), newest 0.4 s, area 2.0 x 1.0 x 0.2"

@@ -1,0 +1,173 @@
+"""Online mapping's data path: live-camera latency over Zenoh, and a robot's memory as its keyframes grow.
+
+    flock /tmp/dinerf-heavy.lock python benchmarks/bench_stream.py [--frames 100] [--sizes 100,300,1000]
+
+1. Latency. A Zenoh router on loopback (the robot's rmw_zenohd), a publisher process writing a
+   recorded camera (10 Hz, rgb8, /tf at 200 Hz) on rmw_zenoh's keys at its recorded pace, and the
+   stream's subscriber (``up --live``). Per image: publish -> decoded message (transport), and
+   publish -> keyframe ready for the trainer (the intake posed it from /tf; sharpness window 1,
+   so a keyframe waits for no later frame; with the default window of 5 it waits ~4 frames more).
+2. Memory. One process per size: N keyframes (160x120) admitted into a view stream while a small
+   trainer trains, against the same N views held in memory as a loaded folder is. Peak RSS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def latency(frames: int, width: int, height: int) -> dict:
+    from agent.data.ros.config import KeyframeConfig, RosBagConfig
+    from agent.data.ros.intake import FrameIntake
+    from protocol.ros_camera import RosTopicSubscriber, open_router
+    from tests.data.bags import camera_bag
+    from tests.protocol.helpers import free_port
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench-stream-"))
+    bag = camera_bag(tmp / "bag", n=frames, w=width, h=height, tf_dt=0.005, moves=0.5)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_router([endpoint])
+    intake = FrameIntake(RosBagConfig(keyframes=KeyframeConfig(sharpness_window=1, max_keyframes=0)),
+                         "/camera/image_raw", "/camera/camera_info", tf_wait_s=5.0)
+    transport, ready, published = [], [], {}
+    lock = threading.Lock()
+
+    def on_message(m) -> None:
+        if m.topic == "/camera/image_raw":
+            stamp = m.message.header.stamp.sec * 1_000_000_000 + m.message.header.stamp.nanosec
+            with lock:
+                published[stamp] = m.attachment.source_timestamp_ns
+                transport.append((time.time_ns() - m.attachment.source_timestamp_ns) * 1e-6)
+        intake.feed(m.topic, m.ros_type, m.message, m.received_ns)
+        for kf in intake.take():  # what the daemon's next admission would get
+            with lock:
+                ready.append((time.time_ns() - published[kf.stamp_ns]) * 1e-6)
+
+    topics = [("/camera/image_raw", "sensor_msgs/msg/Image"), ("/camera/camera_info", "sensor_msgs/msg/CameraInfo"),
+              ("/tf", "tf2_msgs/msg/TFMessage"), ("/tf_static", "tf2_msgs/msg/TFMessage")]
+    sub = RosTopicSubscriber([endpoint], topics, on_message).open()
+    cmd = [sys.executable, str(ROOT / "tools" / "rmw_zenoh_publish.py"), str(bag), "--connect", endpoint, "--mode",
+           "client", "--rate", "1.0", "--match-timeout", "3"]
+    t0 = time.monotonic()
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    wall = time.monotonic() - t0
+    time.sleep(0.5)
+    sub.close()
+    router.close()
+    if out.returncode != 0:
+        raise SystemExit(out.stderr)
+    return {"frames": frames, "size": f"{width}x{height}", "received": len(transport), "keyframes": len(ready),
+            "transport_median_ms": statistics.median(transport), "transport_p95_ms": _p95(transport),
+            "to_trainer_median_ms": statistics.median(ready) if ready else None,
+            "to_trainer_p95_ms": _p95(ready) if ready else None, "publish_wall_s": wall}
+
+
+def _p95(xs: list[float]) -> float:
+    return sorted(xs)[min(len(xs) - 1, int(0.95 * len(xs)))]
+
+
+def memory_child(n: int, mode: str, width: int, height: int, steps_every: int) -> dict:
+    """Runs in its own process: N keyframes through a stream (or held as a folder is), training meanwhile."""
+    import numpy as np
+    import torch
+
+    from agent.data.ros.intake import Keyframe
+    from agent.data.stream import StreamConfig, ViewStream
+    from agent.data.views import Views
+    from agent.geometry import box_from_center
+    from agent.swarm import SwarmTrainingConfig, build_robot
+    from agent.trainer import TrainConfig
+
+    torch.set_num_threads(1)
+    rng = np.random.default_rng(0)
+    k = (width * 0.8, width * 0.8, width / 2, height / 2)
+
+    def keyframe(i: int) -> Keyframe:
+        c2w = np.eye(4)
+        c2w[0, 3] = 0.05 * i
+        return Keyframe(f"frame_{i:06d}", rng.random((height, width, 3), dtype=np.float32), c2w, k, i, time.time_ns())
+
+    training = SwarmTrainingConfig(rounds=1, steps_per_round=1, own_holdout_every=0,
+                                   train=TrainConfig(rays_per_step=256))
+    box = box_from_center(torch.zeros(3), torch.tensor(float(n) * 0.05 + 1))
+    t0 = time.monotonic()
+    if mode == "stream":
+        with tempfile.TemporaryDirectory() as tmp:
+            stream = ViewStream(StreamConfig(), _NoIntake(), Path(tmp) / "keyframes", None, 0, n)
+            stream._admit([keyframe(i) for i in range(4)])
+            setup = build_robot(0, stream.initial_views(), box, training, stream=stream)
+            setup.trainer.train(2)
+            for i in range(4, n):
+                stream._admit([keyframe(i)])
+                if i % steps_every == 0:
+                    setup.trainer.train(2)
+    else:  # every view in memory, as a folder loaded at start
+        kfs = [keyframe(i) for i in range(n)]
+        views = Views(torch.from_numpy(np.stack([kf.image for kf in kfs])),
+                      torch.from_numpy(np.stack([kf.c2w for kf in kfs])).float(),
+                      torch.tensor([k] * n, dtype=torch.float32), [kf.name for kf in kfs])
+        del kfs
+        setup = build_robot(0, views, box, training)
+        setup.trainer.train(2)
+        for i in range(4, n):
+            if i % steps_every == 0:
+                setup.trainer.train(2)
+    return {"keyframes": n, "mode": mode, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "seconds": time.monotonic() - t0}
+
+
+class _NoIntake:
+    """Keyframes are admitted directly: the memory benchmark measures the store, not the decoding."""
+
+    images, skipped, camera, dropped = 0, {}, None, 0
+
+    def take(self) -> list:
+        return []
+
+    def finish(self) -> list:
+        return []
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--frames", type=int, default=100, help="images published for the latency (10 Hz)")
+    p.add_argument("--sizes", default="100,300,1000", help="keyframe counts for the memory")
+    p.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    a = p.parse_args()
+    if a.child:
+        n, mode = a.child.split(":")
+        print(json.dumps(memory_child(int(n), mode, 160, 120, 50)))
+        return
+    print("live camera over Zenoh, loopback, 10 Hz (median / p95 ms):")
+    for w, h in ((320, 240), (640, 480)):
+        r = latency(a.frames, w, h)
+        print(f"  {r['size']}: {r['received']}/{r['frames']} images received, publish -> decoded "
+              f"{r['transport_median_ms']:.1f} / {r['transport_p95_ms']:.1f}, publish -> keyframe for the trainer "
+              f"{r['to_trainer_median_ms']:.1f} / {r['to_trainer_p95_ms']:.1f} ({r['keyframes']} keyframes)")
+    print("peak RSS as keyframes grow (160x120, training meanwhile):")
+    for n in [int(x) for x in a.sizes.split(",")]:
+        row = {}
+        for mode in ("stream", "in-memory"):
+            out = subprocess.run([sys.executable, __file__, "--child", f"{n}:{mode}"], capture_output=True, text=True,
+                                 timeout=3600)
+            if out.returncode != 0:
+                raise SystemExit(out.stderr)
+            row[mode] = json.loads(out.stdout.strip().splitlines()[-1])
+        print(f"  {n:5d} keyframes: stream {row['stream']['peak_rss_mb']:.0f} MB "
+              f"({row['stream']['seconds']:.0f} s), all in memory {row['in-memory']['peak_rss_mb']:.0f} MB")
+
+
+if __name__ == "__main__":
+    main()
