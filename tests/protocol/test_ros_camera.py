@@ -97,3 +97,30 @@ def test_a_restarted_publisher_loses_nothing_the_robot_had(tmp_path):
     assert any(m.topic == "/tf_static" for m in got) and sum(m.topic == "/tf" for m in got) > 50
     assert sub.refused == {} and sub.duplicates == 0
     assert len(got) == total
+
+
+def test_what_is_not_rmw_zenohs_is_refused_by_reason(tmp_path):
+    import zenoh
+
+    from protocol.ros_camera import _client_config
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_router([endpoint])
+    got = []
+    sub = RosTopicSubscriber([endpoint], TOPICS, got.append).open()
+    hostile = zenoh.open(_client_config([endpoint]))
+    try:
+        h = type_hash("sensor_msgs/msg/Image")
+        key = topic_key(0, "/camera/image_raw", "sensor_msgs/msg/Image", h)
+        good = Attachment(1, 0, bytes(16)).encode()
+        time.sleep(0.5)
+        hostile.put(key, b"\x00\x01\x00\x00" + b"\xff" * 7)  # no attachment
+        hostile.put(key, b"\x00\x01\x00\x00", attachment=b"short")
+        hostile.put(key, b"\x00\x01\x00\x00garbage", attachment=good)  # not an Image in CDR
+        hostile.put(key.replace(h, "RIHS01_" + "0" * 64), b"", attachment=Attachment(2, 0, bytes(16)).encode())
+        assert _wait(lambda: sum(sub.refused.values()) >= 4)
+    finally:
+        hostile.close()
+        sub.close()
+        router.close()
+    assert got == [] and sub.refused == {"bad_attachment": 2, "bad_cdr": 1, "type_hash": 1}
