@@ -9,6 +9,10 @@
    so a keyframe waits for no later frame; with the default window of 5 it waits ~4 frames more).
 2. Memory. One process per size: N keyframes (160x120) admitted into a view stream while a small
    trainer trains, against the same N views held in memory as a loaded folder is. Peak RSS.
+3. Sampling on a growing set (``--sampling``): the procedural room's views arrive in capture
+   order, a few per round, while one robot trains; ``recency`` against ``uniform`` at the same
+   steps and seed, and all views given at start (offline). PSNR on every held-out view at the
+   end, and after each round on the held-out views of the places seen last.
 """
 
 from __future__ import annotations
@@ -128,6 +132,63 @@ def memory_child(n: int, mode: str, width: int, height: int, steps_every: int) -
             "seconds": time.monotonic() - t0}
 
 
+def sampling(rounds: int, steps: int, views_n: int, width: int) -> None:
+    import torch
+
+    from agent.data.loaders import load_views
+    from agent.data.capture import estimate_scene_box
+    from agent.data.ros.intake import Keyframe
+    from agent.data.stream import StreamConfig, ViewStream
+    from agent.defaults import Capture
+    from agent.geometry import box_from_center
+    from agent.swarm import SwarmTrainingConfig, build_robot, own_holdout_split
+    from cli.options import load_train_config
+
+    torch.set_num_threads(2)
+    views = load_views(f"procedural:views={views_n},width={width}")
+    train_views, test = own_holdout_split(views, 8)
+    centre, half, _ = estimate_scene_box(views, True, cameras_elsewhere=True)
+    box = box_from_center(centre, half)  # from config: the box is not what is compared here
+    tcfg = load_train_config(None, [], rounds * steps, capture=Capture(unbounded=True, width=width))
+    training = SwarmTrainingConfig(rounds=rounds, steps_per_round=steps, own_holdout_every=0, train=tcfg)
+    per_round = -(-len(train_views) // rounds)
+    n_test_recent = max(1, len(test) // rounds)
+
+    def keyframe(i: int) -> Keyframe:
+        return Keyframe(f"frame_{i:06d}", train_views.images[i].numpy(), train_views.c2w[i].double().numpy(),
+                        tuple(float(x) for x in train_views.intrinsics[i]), i, time.time_ns())
+
+    def psnr(trainer, sel) -> float:
+        return statistics.mean(trainer.evaluate(test.subset(sel), with_ssim=False)["psnr"])
+
+    results = {}
+    for mode in ("recency", "uniform", "offline"):
+        t0 = time.monotonic()
+        curve = []
+        if mode == "offline":
+            setup = build_robot(0, train_views, box, training)
+        with tempfile.TemporaryDirectory() as tmp:
+            if mode != "offline":
+                stream = ViewStream(StreamConfig(sampling=mode, working_set=64), _NoIntake(), Path(tmp) / "kf",
+                                    None, 0, len(train_views))
+                stream._admit([keyframe(i) for i in range(per_round)])
+                setup = build_robot(0, stream.initial_views(), box, training, stream=stream)
+            for k in range(rounds):
+                if mode != "offline" and k:
+                    stream._admit([keyframe(i) for i in range(k * per_round, min((k + 1) * per_round,
+                                                                                  len(train_views)))])
+                setup.trainer.train(steps)
+                seen = min((k + 1) * per_round, len(train_views)) / len(train_views)  # fraction of the path so far
+                last = int(seen * len(test))
+                curve.append(psnr(setup.trainer, list(range(max(0, last - n_test_recent), max(last, 1)))))
+            results[mode] = (psnr(setup.trainer, list(range(len(test)))), curve, time.monotonic() - t0)
+    print(f"sampling on a growing set: procedural {views_n} views at {width} px, {len(train_views)} training "
+          f"keyframes arriving {per_round} per round, {rounds} rounds x {steps} steps, {len(test)} held out")
+    for mode, (final, curve, secs) in results.items():
+        print(f"  {mode:8s} final PSNR on all held-out {final:5.2f} dB; after each round, on the newest places: "
+              + " ".join(f"{x:.1f}" for x in curve) + f"  ({secs:.0f} s)")
+
+
 class _NoIntake:
     """Keyframes are admitted directly: the memory benchmark measures the store, not the decoding."""
 
@@ -145,7 +206,13 @@ def main() -> None:
     p.add_argument("--frames", type=int, default=100, help="images published for the latency (10 Hz)")
     p.add_argument("--sizes", default="100,300,1000", help="keyframe counts for the memory")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--sampling", action="store_true", help="only the sampling comparison (recency, uniform, offline)")
+    p.add_argument("--rounds", type=int, default=8)
+    p.add_argument("--steps", type=int, default=50)
     a = p.parse_args()
+    if a.sampling:
+        sampling(a.rounds, a.steps, 64, 48)
+        return
     if a.child:
         n, mode = a.child.split(":")
         print(json.dumps(memory_child(int(n), mode, 160, 120, 50)))
