@@ -77,7 +77,11 @@ def up(
     source = None
     if replay is not None or live:  # views that arrive while it trains: the first ones make the box and summary
         source = open_stream(cfg, data, folder.keyframe_cache, replay, live, lambda t: _log(f"[robot {robot_id}] {t}"))
-        source.stream.wait_for_start(lambda t: _log(f"[robot {robot_id}] {source.describe}: {t}"))
+        try:
+            source.stream.wait_for_start(lambda t: _log(f"[robot {robot_id}] {source.describe}: {t}"))
+        except BaseException:
+            source.close()
+            raise
         views, summary_views = source.stream.initial_views(), None
     with progress_listener():
         if source is None:

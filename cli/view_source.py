@@ -62,7 +62,7 @@ def open_stream(cfg, data: Path, run_keyframes: Path, replay: float | None, live
             log(f"refused a ROS message ({reason}, #{refused[reason]}): {detail[:200]}")
 
     sub = RosTopicSubscriber(live, topics, lambda m: intake.feed(m.topic, m.ros_type, m.message, m.received_ns),
-                             sc.domain_id, on_refused)
+                             sc.domain_id, on_refused, connect_timeout_s=min(sc.start_timeout_s, 30.0))
     try:
         sub.open()
     except ConnectionError as e:

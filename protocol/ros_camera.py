@@ -70,7 +70,8 @@ class RosMessage:
     received_ns: int  # time.time_ns() when it arrived
 
 
-def _client_config(connect: Iterable[str], mode: str = "client", listen: Iterable[str] = ()) -> zenoh.Config:
+def _client_config(connect: Iterable[str], mode: str = "client", listen: Iterable[str] = (),
+                   connect_timeout_s: float = 10.0) -> zenoh.Config:
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
@@ -79,9 +80,11 @@ def _client_config(connect: Iterable[str], mode: str = "client", listen: Iterabl
     conf.insert_json5("scouting/multicast/enabled", "false")
     # rmw_zenoh's own session config turns timestamping on; transient-local caches need it
     conf.insert_json5("timestamping/enabled", json.dumps({"router": True, "peer": True, "client": True}))
-    # a client retries its router for ever: the robot's router may start after the daemon
-    conf.insert_json5("connect/timeout_ms", json.dumps({"client": -1, "peer": -1, "router": -1}))
-    conf.insert_json5("connect/exit_on_failure", json.dumps({"client": False, "peer": False, "router": False}))
+    # the router must answer within the timeout (else one error, not a hang); once connected, a
+    # client reconnects by itself when the router restarts
+    ms = int(connect_timeout_s * 1000)
+    conf.insert_json5("connect/timeout_ms", json.dumps({"client": ms, "peer": ms, "router": ms}))
+    conf.insert_json5("connect/exit_on_failure", json.dumps({"client": True, "peer": False, "router": False}))
     return conf
 
 
@@ -107,10 +110,12 @@ class RosTopicSubscriber:
     """Subscribes to ROS 2 topics (``(topic, ros type)`` pairs) as a Zenoh client of ``connect``."""
 
     def __init__(self, connect: list[str], topics: Iterable[tuple[str, str]], on_message: Callable[[RosMessage], None],
-                 domain_id: int = 0, on_refused: Callable[[str, str], None] | None = None) -> None:
+                 domain_id: int = 0, on_refused: Callable[[str, str], None] | None = None,
+                 connect_timeout_s: float = 10.0) -> None:
         if not connect:
             raise ValueError("no endpoint to connect to (the robot's Zenoh router, e.g. tcp/localhost:7447)")
         self.connect, self.topics, self.domain_id = list(connect), set(topics), domain_id
+        self.connect_timeout_s = connect_timeout_s
         self.patterns = {(t, ty): topic_key_pattern(domain_id, t, ty) for t, ty in self.topics}
         self.on_message, self.on_refused = on_message, on_refused or (lambda reason, detail: None)
         self.expected_hash = {ty: type_hash(ty) for _, ty in self.topics}
@@ -124,9 +129,11 @@ class RosTopicSubscriber:
 
     def open(self) -> "RosTopicSubscriber":
         try:
-            self._session = zenoh.open(_client_config(self.connect))
+            self._session = zenoh.open(_client_config(self.connect, connect_timeout_s=self.connect_timeout_s))
         except zenoh.ZError as e:
-            raise ConnectionError(f"cannot open a Zenoh client session to {self.connect}: {e}") from None
+            raise ConnectionError(f"no Zenoh router answered at {', '.join(self.connect)} within "
+                                  f"{self.connect_timeout_s:g} s (is the robot's rmw_zenohd running?): "
+                                  f"{str(e).split(' at /')[0][:160]}") from None
         for (topic, _), pattern in self.patterns.items():
             if topic in TRANSIENT_TOPICS:
                 sub = zenoh.ext.declare_advanced_subscriber(
