@@ -45,7 +45,7 @@ def up(
     from protocol.transport import TransportError, ZenohTransport
 
     from cli.options import check_output_folder, progress_listener
-    from cli.view_source import open_stream
+    from cli.view_source import start_stream
 
     from agent.data.ros import is_bag
 
@@ -76,20 +76,15 @@ def up(
     # images only: SfM on the full-size images (cached); a bag: its keyframes (cached); then downscaled
     source = None
     if replay is not None or live:  # views that arrive while it trains: the first ones make the box and summary
-        source = open_stream(cfg, data, folder.keyframe_cache, replay, live, lambda t: _log(f"[robot {robot_id}] {t}"))
-        try:
-            source.stream.wait_for_start(lambda t: _log(f"[robot {robot_id}] {source.describe}: {t}"))
-        except BaseException:
-            source.close()
-            raise
-        views, summary_views = source.stream.initial_views(), None
-    with progress_listener():
-        if source is None:
+        source, views, summary_views = start_stream(cfg, data, folder.keyframe_cache, replay, live,
+                                                    lambda t: _log(f"[robot {robot_id}] {t}"))
+    else:
+        with progress_listener():
             views = folder.load_views(data, cfg.training.image_width, sfm=cfg.sfm, ros=cfg.data.ros)
-        summary_views = None  # the keyframe summary's features come from the sharper images when there are any
-        if source is None and cfg.daemon.initial_pose == "coarse" and cfg.daemon.summary_width != cfg.training.image_width:
-            full = folder.load_views(data, cfg.daemon.summary_width, sfm=cfg.sfm, ros=cfg.data.ros)
-            summary_views = full if full.width != views.width else None
+            summary_views = None  # the keyframe summary's features come from the sharper images when there are any
+            if cfg.daemon.initial_pose == "coarse" and cfg.daemon.summary_width != cfg.training.image_width:
+                full = folder.load_views(data, cfg.daemon.summary_width, sfm=cfg.sfm, ros=cfg.data.ros)
+                summary_views = full if full.width != views.width else None
     run_folder = RunFolder(run_dir)
     run_folder.write_data_record(data, swarm_path)  # render/eval/export find the views through it
     run_folder.write_config(dumps(to_dict(cfg), show_unset=True))  # what it runs with, agent.defaults fitted

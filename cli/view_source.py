@@ -12,6 +12,7 @@ from typing import Callable
 from agent.data.ros.bag import CAMERA_INFO, COMPRESSED, IMAGE, TF
 from agent.data.ros.intake import FrameIntake, bag_image_topic, replay_bag
 from agent.data.stream import ViewStream
+from agent.data.views import Views
 from cli.errors import UserError
 
 DEFAULT_IMAGE_TOPIC = "/camera/image_raw"
@@ -70,3 +71,18 @@ def open_stream(cfg, data: Path, run_keyframes: Path, replay: float | None, live
         raise UserError(str(e)) from None
     return StreamSource(stream, f"live camera {image_topic} over Zenoh from {', '.join(live)} (domain {sc.domain_id})",
                         sub)
+
+
+def start_stream(cfg, data: Path, run_keyframes: Path, replay: float | None, live: list[str],
+                 log: Callable[[str], None]) -> tuple[StreamSource, Views, Views | None]:
+    """Open the stream and wait for its first keyframes: (source, training views, summary views or None)."""
+    source = open_stream(cfg, data, run_keyframes, replay, live, log)
+    try:
+        source.stream.wait_for_start(lambda t: log(f"{source.describe}: {t}"))
+        views, summary = source.stream.initial_views(), None
+        if cfg.daemon.initial_pose == "coarse" and cfg.daemon.summary_width != cfg.training.image_width:
+            summary = source.stream.initial_views(cfg.daemon.summary_width)  # sharper features for the summary
+        return source, views, summary if summary is not None and summary.width != views.width else None
+    except BaseException:
+        source.close()
+        raise

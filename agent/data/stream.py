@@ -233,10 +233,9 @@ class ViewStream:
         for row in range(len(self._rows)):
             self._to_trainer(row, load=row >= first_loaded)
 
-    def _camera(self, frame: dict) -> tuple[Tensor, Tensor]:
+    def _camera(self, frame: dict, size: tuple[int, int] | None = None) -> tuple[Tensor, Tensor]:
         cam = self.store.camera
-        w, h = self.size
-        s = w / cam["w"]
+        s = (size or self.size)[0] / cam["w"]
         k = torch.tensor([cam["fl_x"] * s, cam["fl_y"] * s, cam["cx"] * s, cam["cy"] * s])
         return torch.tensor(frame["transform_matrix"], dtype=torch.float32), k
 
@@ -254,8 +253,8 @@ class ViewStream:
             self._load_into_working_set(row)
 
     # ------------------------------------------------------------------ the working set
-    def _image(self, frame: dict) -> Tensor:
-        return torch.from_numpy(np.ascontiguousarray(self.store.image(frame, *self.size)))
+    def _image(self, frame: dict, size: tuple[int, int] | None = None) -> Tensor:
+        return torch.from_numpy(np.ascontiguousarray(self.store.image(frame, *(size or self.size))))
 
     def _load_into_working_set(self, row: int, slot: int | None = None) -> None:
         img = self._image(self._rows[row])
@@ -309,15 +308,18 @@ class ViewStream:
         return rows[pos].to(device), row.to(device), col.to(device), pixels.to(device)
 
     # ------------------------------------------------------------------ views for who needs pixels
-    def _views(self, frames: list[dict]) -> Views:
-        cams = [self._camera(f) for f in frames]
-        return Views(torch.stack([self._image(f) for f in frames]), torch.stack([c for c, _ in cams]),
+    def _views(self, frames: list[dict], size: tuple[int, int] | None = None) -> Views:
+        cams = [self._camera(f, size) for f in frames]
+        return Views(torch.stack([self._image(f, size) for f in frames]), torch.stack([c for c, _ in cams]),
                      torch.stack([k for _, k in cams]), [Path(f["file_path"]).stem for f in frames],
                      meta={"format": "stream", "source": str(self.store.folder)})
 
-    def initial_views(self) -> Views:
-        """The training keyframes admitted so far, in memory: the box, the summary, the first rows."""
-        return self._views(self._rows)
+    def initial_views(self, width: int | None = 0) -> Views:
+        """The training keyframes admitted so far, in memory: the box, the summary, the first rows.
+        ``width``: 0 the training width, None the camera's own (the keyframe summary's sharper copy)."""
+        cam = self.store.camera
+        size = None if width == 0 else target_size(int(cam["w"]), int(cam["h"]), width, "daemon.summary_width")
+        return self._views(self._rows, size)
 
     def holdout_views(self) -> Views | None:
         """Up to ``eval_views`` held-out keyframes spread over all of them (the log line's PSNR)."""
