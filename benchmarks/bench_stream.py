@@ -4,9 +4,11 @@
 
 1. Latency. A Zenoh router on loopback (the robot's rmw_zenohd), a publisher process writing a
    recorded camera (10 Hz, rgb8, /tf at 200 Hz) on rmw_zenoh's keys at its recorded pace, and the
-   stream's subscriber (``up --live``). Per image: publish -> decoded message (transport), and
-   publish -> keyframe ready for the trainer (the intake posed it from /tf; sharpness window 1,
-   so a keyframe waits for no later frame; with the default window of 5 it waits ~4 frames more).
+   stream's subscriber (``up --live``), with a small trainer training meanwhile. Per image:
+   publish -> decoded message (transport), -> keyframe ready (posed from /tf, chosen; sharpness
+   window 1, so a keyframe waits for no later frame; with the default window of 5 it waits ~4
+   frames, 400 ms, more), -> admitted by the trainer (written to keyframes/, taken at the next
+   step: up to one step later).
 2. Memory. One process per size: N keyframes (160x120) admitted into a view stream while a small
    trainer trains, against the same N views held in memory as a loaded folder is. Peak RSS.
 3. Sampling on a growing set (``--sampling``): the procedural room's views arrive in capture
@@ -33,19 +35,26 @@ sys.path.insert(0, str(ROOT))
 
 
 def latency(frames: int, width: int, height: int) -> dict:
+    """Publish -> decoded (transport), -> keyframe ready (posed), -> admitted by a trainer that trains meanwhile."""
+    import torch
+
     from agent.data.ros.config import KeyframeConfig, RosBagConfig
     from agent.data.ros.intake import FrameIntake
+    from agent.data.stream import StreamConfig, ViewStream
+    from agent.geometry import box_from_center
+    from agent.swarm import SwarmTrainingConfig, build_robot
     from protocol.ros_camera import RosTopicSubscriber, open_router
     from tests.data.bags import camera_bag
     from tests.protocol.helpers import free_port
 
+    torch.set_num_threads(1)
     tmp = Path(tempfile.mkdtemp(prefix="bench-stream-"))
     bag = camera_bag(tmp / "bag", n=frames, w=width, h=height, tf_dt=0.005, moves=0.5)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_router([endpoint])
     intake = FrameIntake(RosBagConfig(keyframes=KeyframeConfig(sharpness_window=1, max_keyframes=0)),
                          "/camera/image_raw", "/camera/camera_info", tf_wait_s=5.0)
-    transport, ready, published = [], [], {}
+    transport, published = [], {}
     lock = threading.Lock()
 
     def on_message(m) -> None:
@@ -55,27 +64,44 @@ def latency(frames: int, width: int, height: int) -> dict:
                 published[stamp] = m.attachment.source_timestamp_ns
                 transport.append((time.time_ns() - m.attachment.source_timestamp_ns) * 1e-6)
         intake.feed(m.topic, m.ros_type, m.message, m.received_ns)
-        for kf in intake.take():  # what the daemon's next admission would get
-            with lock:
-                ready.append((time.time_ns() - published[kf.stamp_ns]) * 1e-6)
 
     topics = [("/camera/image_raw", "sensor_msgs/msg/Image"), ("/camera/camera_info", "sensor_msgs/msg/CameraInfo"),
               ("/tf", "tf2_msgs/msg/TFMessage"), ("/tf_static", "tf2_msgs/msg/TFMessage")]
     sub = RosTopicSubscriber([endpoint], topics, on_message).open()
     cmd = [sys.executable, str(ROOT / "tools" / "rmw_zenoh_publish.py"), str(bag), "--connect", endpoint, "--mode",
            "client", "--rate", "1.0", "--match-timeout", "3"]
-    t0 = time.monotonic()
-    out = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-    wall = time.monotonic() - t0
-    time.sleep(0.5)
+    publisher = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    stream = ViewStream(StreamConfig(start_keyframes=1), intake, tmp / "keyframes", 64, 0, frames)
+    stream.wait_for_start()
+    training = SwarmTrainingConfig(rounds=1, steps_per_round=1, own_holdout_every=0, train=_small_field(64))
+    box = box_from_center(torch.tensor([0.25 * frames, 0.0, 0.0]), torch.tensor(0.3 * frames + 1))
+    setup = build_robot(0, stream.initial_views(), box, training, stream=stream)
+    steps, t0 = 0, time.monotonic()
+    while publisher.poll() is None:  # the robot trains while its camera streams; each step admits what arrived
+        setup.trainer.train(1)
+        steps += 1
+    train_s = time.monotonic() - t0
+    setup.trainer.train(2)
     sub.close()
     router.close()
-    if out.returncode != 0:
-        raise SystemExit(out.stderr)
-    return {"frames": frames, "size": f"{width}x{height}", "received": len(transport), "keyframes": len(ready),
+    if publisher.returncode != 0:
+        raise SystemExit(publisher.stderr.read())
+    posed = [(f["ready_ns"], f["admitted_ns"], published[f["stamp_ns"]]) for f in stream.store.frames[1:]]
+    ready = [(r - p) * 1e-6 for r, _, p in posed]
+    admitted = [(a - p) * 1e-6 for _, a, p in posed]
+    return {"frames": frames, "size": f"{width}x{height}", "received": len(transport), "keyframes": len(posed),
             "transport_median_ms": statistics.median(transport), "transport_p95_ms": _p95(transport),
-            "to_trainer_median_ms": statistics.median(ready) if ready else None,
-            "to_trainer_p95_ms": _p95(ready) if ready else None, "publish_wall_s": wall}
+            "ready_median_ms": statistics.median(ready), "ready_p95_ms": _p95(ready),
+            "to_trainer_median_ms": statistics.median(admitted), "to_trainer_p95_ms": _p95(admitted),
+            "step_ms": 1000 * train_s / max(steps, 1)}
+
+
+def _small_field(width: int):
+    """The field and sampler agent.defaults fits to an RGB capture of this width (the quickstart's field)."""
+    from agent.defaults import Capture
+    from cli.options import load_train_config
+
+    return load_train_config(None, [], 1000, capture=Capture(unbounded=True, width=width))
 
 
 def _p95(xs: list[float]) -> float:
@@ -92,7 +118,6 @@ def memory_child(n: int, mode: str, width: int, height: int, steps_every: int) -
     from agent.data.views import Views
     from agent.geometry import box_from_center
     from agent.swarm import SwarmTrainingConfig, build_robot
-    from agent.trainer import TrainConfig
 
     torch.set_num_threads(1)
     rng = np.random.default_rng(0)
@@ -103,8 +128,7 @@ def memory_child(n: int, mode: str, width: int, height: int, steps_every: int) -
         c2w[0, 3] = 0.05 * i
         return Keyframe(f"frame_{i:06d}", rng.random((height, width, 3), dtype=np.float32), c2w, k, i, time.time_ns())
 
-    training = SwarmTrainingConfig(rounds=1, steps_per_round=1, own_holdout_every=0,
-                                   train=TrainConfig(rays_per_step=256))
+    training = SwarmTrainingConfig(rounds=1, steps_per_round=1, own_holdout_every=0, train=_small_field(width))
     box = box_from_center(torch.zeros(3), torch.tensor(float(n) * 0.05 + 1))
     t0 = time.monotonic()
     if mode == "stream":
@@ -221,8 +245,10 @@ def main() -> None:
     for w, h in ((320, 240), (640, 480)):
         r = latency(a.frames, w, h)
         print(f"  {r['size']}: {r['received']}/{r['frames']} images received, publish -> decoded "
-              f"{r['transport_median_ms']:.1f} / {r['transport_p95_ms']:.1f}, publish -> keyframe for the trainer "
-              f"{r['to_trainer_median_ms']:.1f} / {r['to_trainer_p95_ms']:.1f} ({r['keyframes']} keyframes)")
+              f"{r['transport_median_ms']:.1f} / {r['transport_p95_ms']:.1f}, -> posed keyframe ready "
+              f"{r['ready_median_ms']:.1f} / {r['ready_p95_ms']:.1f}, -> admitted by the trainer "
+              f"{r['to_trainer_median_ms']:.1f} / {r['to_trainer_p95_ms']:.1f} ({r['keyframes']} keyframes; "
+              f"training meanwhile at {r['step_ms']:.0f} ms a step)")
     print("peak RSS as keyframes grow (160x120, training meanwhile):")
     for n in [int(x) for x in a.sizes.split(",")]:
         row = {}

@@ -4,7 +4,8 @@ A robot that maps does not hand over a finished folder: its keyframes arrive whi
 (:mod:`agent.data.ros.intake`: a bag replayed at its recorded pace, or the live camera over
 Zenoh). :class:`ViewStream` owns them:
 
-- **Admission.** Each keyframe is written to the run folder's ``keyframes/`` (a nerfstudio
+- **Admission**, before every training step (a keyframe is trained from the step after it
+  arrives) and every round. Each keyframe is written to the run folder's ``keyframes/`` (a nerfstudio
   folder, as the bag loader writes, so evaluation, export and the viewer read it) and takes the
   trainer's next row (:meth:`agent.trainer.RobotTrainer.admit_views`, which opens the occupancy
   grid where it looks). Every ``own_holdout_every``-th keyframe is held out instead, by the rule
@@ -115,7 +116,9 @@ class _Store:
             self.camera = {"w": int(kf.image.shape[1]), "h": int(kf.image.shape[0]), "fl_x": fx, "fl_y": fy,
                            "cx": cx, "cy": cy}
         self.frames.append({"file_path": f"images/{kf.name}.png", "transform_matrix": matrix_to_list(kf.c2w),
-                            "stamp_ns": kf.stamp_ns, "received_ns": kf.received_ns, "held_out": held_out})
+                            "stamp_ns": kf.stamp_ns, "received_ns": kf.received_ns, "ready_ns": kf.ready_ns,
+                            "admitted_ns": time.time_ns(),
+                            "held_out": held_out})
         atomic_write_text(self.folder / "transforms.json", json.dumps(
             {"camera_model": "PINHOLE", **self.camera, "dinerf": {"source": "stream"}, "frames": self.frames}))
 
@@ -149,6 +152,8 @@ class ViewStream:
         self._newest_received: float | None = None
         self._lo = self._hi = None
         self._thread: threading.Thread | None = None
+        self._pending: list[Keyframe] = []  # the intake's last keyframes, once its source ended
+        self._newest_stamp = max((f["stamp_ns"] for f in self.store.frames), default=-1)
         for frame in self.store.frames:  # a restart: what this run already had
             self._place(frame)
 
@@ -164,7 +169,6 @@ class ViewStream:
                 self._pending = self.intake.finish()
                 self.ended.set()
 
-        self._pending: list[Keyframe] = []
         self._thread = threading.Thread(target=target, name="view-stream", daemon=True)
         self._thread.start()
 
@@ -178,9 +182,8 @@ class ViewStream:
             raise DataError(str(self.error)) if not isinstance(self.error, DataError) else self.error
         out = self.intake.take()
         if self.ended.is_set():
-            out, self._pending = out + getattr(self, "_pending", []), []
-        newest = max((f["stamp_ns"] for f in self.store.frames), default=-1)
-        return [k for k in out if k.stamp_ns > newest]  # a replay after a restart: what we had is not added twice
+            out, self._pending = out + self._pending, []
+        return [k for k in out if k.stamp_ns > self._newest_stamp]  # a replay after a restart: none added twice
 
     def wait_for_start(self, log=lambda text: None) -> None:
         """Until ``start_keyframes`` keyframes are in (or the source ended, or the timeout)."""
@@ -220,6 +223,7 @@ class ViewStream:
             self.store.add(kf, held)
             self._counts["held_out" if held else "admitted"] += 1
             self._newest_received = kf.received_ns * 1e-9
+            self._newest_stamp = max(self._newest_stamp, kf.stamp_ns)
             self._place(self.store.frames[-1])
 
     def admit(self) -> None:
@@ -287,7 +291,9 @@ class ViewStream:
             self._load_into_working_set(outside[r], old[s])
 
     def sample(self, n: int, generator: torch.Generator, device: torch.device) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """n pixels: trainer row, pixel row, column [n] each and colour [n, C] (the trainer's source)."""
+        """n pixels: trainer row, pixel row, column [n] each and colour [n, C] (the trainer's source).
+        What arrived since the last step is admitted first: a keyframe is trained from the next step on."""
+        self._admit(self._arrived())
         if self._steps % self.cfg.refresh_every == 0:
             self._refresh(generator)
         self._steps += 1

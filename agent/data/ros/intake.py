@@ -43,6 +43,7 @@ class Keyframe:
     intrinsics: tuple[float, float, float, float]  # fx, fy, cx, cy (pinhole, pixel centres at +0.5)
     stamp_ns: int  # header stamp
     received_ns: int  # when it reached this robot (wall clock)
+    ready_ns: int = 0  # when it was posed and chosen (wall clock)
 
 
 @dataclass
@@ -115,7 +116,13 @@ class FrameIntake:
 
     def _pose_pending(self, now_ns: int) -> None:
         """Pose the waiting images that tf now covers (or never will); offer them to the keyframer."""
-        if self.camera is None or not self._pending:
+        if not self._pending:
+            return
+        if self.camera is None:  # no CameraInfo yet: images wait for it as for tf, then are skipped
+            keep = [p for p in self._pending if now_ns - p.received_ns < self.tf_wait_ns]
+            if len(keep) < len(self._pending):
+                self.skipped["no_camera_info"] += len(self._pending) - len(keep)
+            self._pending = keep
             return
         if not self._tf_sorted:
             self.tf.finish()
@@ -168,7 +175,7 @@ class FrameIntake:
             self._und = self._und or undistortion(intrinsics, img.shape[1], img.shape[0], self.camera.lens)
             img, intrinsics = self._und.image(img), self._und.intrinsics
         return Keyframe(f"frame_{p.index:06d}", img, c2w, tuple(float(x) for x in intrinsics), p.stamp_ns,
-                        p.received_ns)
+                        p.received_ns, time.time_ns())
 
     # ------------------------------------------------------------------ taking
     def take(self) -> list[Keyframe]:
