@@ -176,3 +176,15 @@ def test_the_round_line_and_status_say_what_the_stream_did():
                                           pose_scale=1.0).log_line(10)
     views = {"keyframes": 42, "held_out": 5, "dropped": 1, "newest_age_s": 0.4, "coverage": [2.0, 1.0, 0.25]}
     assert _views(status_message(views=views)) == "42 (+5 held, 1 dropped), newest 0.4 s, area 2.0 x 1.0 x 0.2"
+
+
+def test_images_without_camera_info_are_dropped_not_hoarded(tmp_path):
+    bag = camera_bag(tmp_path / "bag", n=6)
+    intake = _intake(bag, tf_wait_s=0.0)
+    from agent.data.ros.bag import _Bag
+
+    b = _Bag(bag)
+    for conn, _, msg in b.messages([c for c in b.connections if c.topic != "/camera/camera_info"]):
+        intake.feed(conn.topic, conn.msgtype, msg)
+    b.close()
+    assert intake.take() == [] and intake._pending == [] and intake.skipped["no_camera_info"] == 6
