@@ -37,7 +37,8 @@ from protocol.untrusted import describe
 #: Bumped whenever the header or a body changes incompatibly; peers on another version are refused.
 #: 2: Status.alignment is an :class:`Alignment` value, with its free text in alignment_detail.
 #: 3: Status.suspects: the neighbours the sender does not trust, and why.
-SCHEMA_VERSION = 3
+#: 4: Status.views: keyframes so far, held out, dropped, the newest's age, the area covered.
+SCHEMA_VERSION = 4
 
 #: Why a robot distrusts a neighbour (Status.suspects): its claimed round runs ahead of its pace,
 #: its models are clipped or move erratically (robust consensus), it is quarantined for that, or
