@@ -86,7 +86,8 @@ def up(
                 full = folder.load_views(data, cfg.daemon.summary_width, sfm=cfg.sfm, ros=cfg.data.ros)
                 summary_views = full if full.width != views.width else None
     run_folder = RunFolder(run_dir)
-    run_folder.write_data_record(data, swarm_path)  # render/eval/export find the views through it
+    # render/eval/export find the views through it (a stream's: the keyframes it kept, not its source)
+    run_folder.write_data_record(data if source is None else folder.keyframe_cache, swarm_path)
     run_folder.write_config(dumps(to_dict(cfg), show_unset=True))  # what it runs with, agent.defaults fitted
     if views.meta.get("bag_settings_changed"):
         LOGGER.warning(f"[robot {robot_id}] {views.meta['notes'][-1]}")

@@ -106,6 +106,13 @@ def test_held_out_as_the_loader_splits_and_capacity_drops(tmp_path):
     again.ended.set()
     again.admit()
     assert len(again.store.frames) == 30 and len(again._rows) == 20
+    # render, eval and export read the run's streamed keyframes, never the bag again over them
+    from agent.data.ros import load_bag
+
+    views = load_bag(tmp_path / "bag", cache_dir=tmp_path / "keyframes")
+    assert views.names == [n.split("/")[-1][:-4] for n in names]
+    train, held = own_holdout_split(views, 5)
+    assert held.names == [f["file_path"].split("/")[-1][:-4] for f in stream._held]
 
 
 def _trained(tmp_path, **cfg):
