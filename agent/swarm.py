@@ -98,9 +98,11 @@ def build_robot(
     initial_pose: Tensor | None = None,
     is_reference: bool = False,
     stream: ViewStream | None = None,
+    view_rows: int | None = None,
 ) -> RobotSetup:
     """stream: the robot's views grow while it trains; ``views`` are then its training keyframes so
-    far (:meth:`ViewStream.initial_views`), and the stream holds its own held-out ones out."""
+    far (:meth:`ViewStream.initial_views`), and the stream holds its own held-out ones out.
+    view_rows: the per-view state's rows of a checkpoint to load (:func:`agent.checkpoint.view_rows`)."""
     if stream is None:
         train_views, holdout = own_holdout_split(views, cfg.own_holdout_every)
     else:
@@ -108,7 +110,8 @@ def build_robot(
     tcfg = dataclasses.replace(
         cfg.train, seed=robot_seed(cfg.seed, robot_id), init_seed=cfg.seed, total_steps=cfg.total_steps
     )
-    trainer = RobotTrainer(train_views, tcfg, box_from_shared, initial_pose, consensus=cfg.consensus, rays=stream)
+    trainer = RobotTrainer(train_views, tcfg, box_from_shared, initial_pose, consensus=cfg.consensus, rays=stream,
+                           view_rows=view_rows)
     if stream is not None:
         stream.attach(trainer)
     if is_reference:

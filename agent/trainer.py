@@ -162,10 +162,12 @@ class RobotTrainer:
         initial_pose: Tensor | None = None,
         consensus: ConsensusConfig | None = None,
         rays: "ViewStream | None" = None,
+        view_rows: int | None = None,
     ) -> None:
         """rays: where training pixels come from when the views grow while training
         (:class:`agent.data.stream.ViewStream`); per-view state is then sized by ``rays.capacity``
-        and ``views`` are the first of them. None: ``views`` are all there is."""
+        and ``views`` are the first of them. None: ``views`` are all there is. view_rows: per-view
+        state for this many views (a stream run's checkpoint, loaded to render or evaluate)."""
         if cfg.field.unbounded is None:  # images that show their surroundings need all of space modelled
             cfg = dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, unbounded=views.shows_surroundings))
         self.cfg = cfg
@@ -174,7 +176,7 @@ class RobotTrainer:
         self.views = views
         self.images = views.images.to(dev)  # [M, H, W, C]
         self.rays = rays
-        m = len(views) if rays is None else rays.capacity
+        m = rays.capacity if rays is not None else max(len(views), view_rows or 0)
         pad = m - len(views)  # rows of views still to come: filled by admit_views
         self.c2w_local = torch.cat([views.c2w, torch.eye(4).expand(pad, 4, 4)]).to(dev).float()  # [M, 4, 4]
         self.intrinsics = torch.cat([views.intrinsics, views.intrinsics[:1].expand(pad, 4)]).to(dev).float()  # [M, 4]

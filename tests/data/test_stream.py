@@ -167,6 +167,15 @@ def test_training_on_a_growing_set_keeps_its_shapes_and_opens_the_grid(tmp_path)
     trainer.train(4)
     trainer.load_state_dict(state)  # checkpoints from before the growth still load
     assert trainer.step == 4
+    # render, eval, export: the run's keyframes read back as a folder, the checkpoint's rows kept
+    from agent.checkpoint import view_rows
+
+    final = trainer.state_dict()
+    again = build_robot(0, stream.initial_views(), trainer.box_from_shared, SwarmTrainingConfig(
+        rounds=1, steps_per_round=4, own_holdout_every=0, train=TrainConfig(rays_per_step=64)),
+        view_rows=view_rows(final)).trainer
+    again.load_state_dict(final)
+    assert again.view_phi.shape[0] == 300 and len(again.views) == 10
 
 
 def test_the_round_line_and_status_say_what_the_stream_did():
