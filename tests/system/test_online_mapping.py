@@ -1,7 +1,7 @@
 """`up --replay`: a robot trains while its bag plays at its recorded pace, its views growing round by round.
 
-The bag is recorded here from the procedural scene (agent.data.ros.record) and played at a quarter
-of its pace, so that keyframes keep arriving over the first rounds. The real `up` runs it; then it
+The bag is recorded here from the procedural scene (agent.data.ros.record) and played at 0.08x
+its pace, so that keyframes keep arriving over the first rounds. The real `up` runs it; then it
 is started again with one more round: it resumes with the keyframes it had, none added twice.
 """
 
@@ -31,14 +31,14 @@ SMALL = ["--set", "training.train.rays_per_step=512", "--set", "training.train.f
 
 def _up(tmp: Path, env: dict, *extra: str) -> tuple[int, str]:
     argv = [sys.executable, "-m", "cli", "up", "--id", "1", "--data", "robot1.mcap", "--swarm", "sw/swarm.toml",
-            "--tls", "sw/robot1/tls", "--replay", "0.25", *SMALL, *extra]
+            "--tls", "sw/robot1/tls", "--replay", "0.08", *SMALL, *extra]
     out = subprocess.run(argv, cwd=tmp, env=env, capture_output=True, text=True, timeout=400)
     return out.returncode, out.stdout + out.stderr
 
 
 def test_a_replayed_bag_grows_the_views_while_the_robot_trains_and_a_restart_keeps_them(tmp_path):
     views = load_views("procedural:views=24,width=64")
-    record_bag(views, tmp_path / "bag1", np.eye(4), RecordConfig())  # 10 Hz: 2.4 s, ~10 s at 0.25x
+    record_bag(views, tmp_path / "bag1", np.eye(4), RecordConfig())  # 10 Hz: 2.4 s, 30 s at 0.08x
     bag_storage_file(tmp_path / "bag1").rename(tmp_path / "robot1.mcap")
     env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1", COLUMNS="250")
     out = subprocess.run([sys.executable, "-m", "cli", "init", "--robots", "1", "--out", "sw", "--rounds", "5",
