@@ -164,10 +164,9 @@ class RobotTrainer:
         rays: "ViewStream | None" = None,
         view_rows: int | None = None,
     ) -> None:
-        """rays: where training pixels come from when the views grow while training
-        (:class:`agent.data.stream.ViewStream`); per-view state is then sized by ``rays.capacity``
-        and ``views`` are the first of them. None: ``views`` are all there is. view_rows: per-view
-        state for this many views (a stream run's checkpoint, loaded to render or evaluate)."""
+        """rays: the pixel source when views grow while training (agent.data.stream.ViewStream): per-view
+        state is sized by ``rays.capacity``, ``views`` are the first. view_rows: per-view state for
+        this many views (a stream run's checkpoint, loaded to render or evaluate)."""
         if cfg.field.unbounded is None:  # images that show their surroundings need all of space modelled
             cfg = dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, unbounded=views.shows_surroundings))
         self.cfg = cfg
@@ -383,11 +382,12 @@ class RobotTrainer:
     @torch.no_grad()
     def admit_views(self, index: int, c2w: Tensor, intrinsics: Tensor, width: int, height: int) -> int:
         """A view that arrived while training takes row ``index`` (c2w [4, 4] local, intrinsics [4]);
-        the occupancy grid opens where it looks. Returns the cells opened."""
+        the occupancy grid opens where it is the first to look. Returns the cells opened."""
         self.c2w_local[index] = c2w.to(self.device).float()
         self.intrinsics[index] = intrinsics.to(self.device).float()
         c2w_box = self.box_from_shared @ transform_c2w(self.pose.matrix(), self.c2w_local[index:index + 1])[0]
-        return self.grid.open_frustum(c2w_box, self.intrinsics[index], width, height, bool(self.cfg.field.unbounded))
+        return self.grid.open_frustum(c2w_box, self.intrinsics[index], width, height, bool(self.cfg.field.unbounded),
+                                      mark_only=self.step == 0)
 
     def train_step(self) -> dict[str, float]:
         cfg = self.cfg

@@ -159,11 +159,17 @@ def test_training_on_a_growing_set_keeps_its_shapes_and_opens_the_grid(tmp_path)
     assert trainer.view_phi.shape[0] == 300 and trainer.appearance.params.shape[0] == 300
     trainer.train(4)
     state = trainer.state_dict()
-    trainer.grid.occupied[:] = False  # as if pruned: nothing of the new keyframes' view was trained yet
-    before = trainer.grid.occupied.sum()
-    stream._admit(stream.intake_keyframes[4:10])
-    assert trainer.grid.occupied.sum() > before
-    np.testing.assert_allclose(trainer.c2w_local[9].numpy(), np.array(stream._rows[9]["transform_matrix"]), atol=1e-6)
+    trainer.grid.occupied[:] = False  # as if pruned
+    stream._admit(stream.intake_keyframes[4:9])  # further along, looking where the first ones looked
+    assert int(trainer.grid.occupied.sum()) == 0  # what a keyframe saw is the field's to prune, not reopened
+    import dataclasses
+
+    kf = stream.intake_keyframes[9]
+    back = kf.c2w.copy()
+    back[:3, :3] = back[:3, :3] @ np.diag([-1.0, 1.0, -1.0])  # turned round: space no keyframe has seen
+    stream._admit([dataclasses.replace(kf, c2w=back)])
+    assert int(trainer.grid.occupied.sum()) > 0
+    np.testing.assert_allclose(trainer.c2w_local[9].numpy(), back, atol=1e-6)
     trainer.train(4)
     trainer.load_state_dict(state)  # checkpoints from before the growth still load
     assert trainer.step == 4

@@ -108,4 +108,9 @@ def test_open_frustum_opens_what_a_new_camera_sees_and_nothing_behind_it(unbound
     behind = centres[:, 2] > 0.1
     assert opened == int(grid.occupied.sum()) > 0
     assert bool(grid.occupied[ahead].all()) and not bool(grid.occupied[behind].any())
-    assert float(grid.density[grid.occupied].min()) >= 2 * grid.cfg.density_threshold
+    assert float(grid.density[grid.occupied].min()) > grid.cfg.density_threshold
+    grid.occupied[:] = False  # the field pruned it since: a second camera there reopens nothing it saw
+    assert grid.open_frustum(c2w, torch.tensor([8.0, 8.0, 8.0, 8.0]), 16, 16, unbounded) == 0
+    turned = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0]))  # looking the other way: all new
+    assert grid.open_frustum(turned, torch.tensor([8.0, 8.0, 8.0, 8.0]), 16, 16, unbounded) > 0
+    assert bool(grid.occupied[behind & (centres[:, :2].abs() < 0.5 * centres[:, 2:3]).all(-1)].all())
