@@ -108,9 +108,9 @@ class OccupancyGrid:
         keyframe had trained it yet: marching would skip it and the field could never learn it.
         Only cells no earlier camera saw are opened (re-opening what the field has trained kept the
         whole grid open in a room, where every camera sees most of it; streamed training stalled
-        then, 7.7 dB against 20.7 offline, benchmarks/bench_stream.py --sampling), with a density just above the
-        threshold, so they stay open until the update visits them again. ``mark_only``: only
-        remember the cells as seen (the first keyframes, before the grid's own warm-up)."""
+        then, 7.7 dB against 20.7 offline, benchmarks/bench_stream.py --sampling), with a density
+        just above the threshold, so they stay open until the update visits them again.
+        ``mark_only``: only remember the cells as seen (the first keyframes, before the warm-up)."""
         r = self.cfg.resolution
         x = (self._cell_xyz.float() + 0.5) * (2.0 / r) - 1  # [C, 3] grid coordinates
         if unbounded:  # the inverse of agent.nerf.contraction.contract
