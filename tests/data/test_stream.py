@@ -16,8 +16,14 @@ from agent.data.ros.keyframes import OnlineKeyframer, plan_keyframes
 from agent.data.stream import StreamConfig, ViewStream
 from agent.geometry import box_from_center
 from agent.swarm import SwarmTrainingConfig, build_robot, own_holdout_split
+from agent.nerf.encoding import HashGridConfig
+from agent.nerf.field import FieldConfig
+from agent.nerf.occupancy import OccupancyConfig
 from agent.trainer import TrainConfig
 from tests.data.bags import camera_bag
+
+SMALL = TrainConfig(rays_per_step=64, field=FieldConfig(grid=HashGridConfig(log2_hashmap_size=12, num_levels=8)),
+                    occupancy=OccupancyConfig(resolution=32))
 
 
 def _intake(bag, cfg=None, **kw) -> FrameIntake:
@@ -120,8 +126,7 @@ def _trained(tmp_path, **cfg):
     stream.intake_keyframes = stream._arrived()
     stream._admit(stream.intake_keyframes[:4])
     views = stream.initial_views()
-    training = SwarmTrainingConfig(rounds=1, steps_per_round=4, own_holdout_every=0,
-                                   train=TrainConfig(rays_per_step=64))
+    training = SwarmTrainingConfig(rounds=1, steps_per_round=4, own_holdout_every=0, train=SMALL)
     setup = build_robot(0, views, box_from_center(torch.tensor([10.0, 0, 0]), torch.tensor(15.0)), training,
                         stream=stream)
     return stream, setup
@@ -178,8 +183,7 @@ def test_training_on_a_growing_set_keeps_its_shapes_and_opens_the_grid(tmp_path)
 
     final = trainer.state_dict()
     again = build_robot(0, stream.initial_views(), trainer.box_from_shared, SwarmTrainingConfig(
-        rounds=1, steps_per_round=4, own_holdout_every=0, train=TrainConfig(rays_per_step=64)),
-        view_rows=view_rows(final)).trainer
+        rounds=1, steps_per_round=4, own_holdout_every=0, train=SMALL), view_rows=view_rows(final)).trainer
     again.load_state_dict(final)
     assert again.view_phi.shape[0] == 300 and len(again.views) == 10
 
