@@ -265,6 +265,13 @@ def load_into(trainer: RobotTrainer, path: Path, state: dict) -> None:
         raise CheckpointError(path, f"does not fit this model ({type(e).__name__}: {e})") from None
 
 
+def view_rows(state: dict) -> int | None:
+    """The rows of a checkpoint's per-view state: more than its views when it trained on a stream
+    (capacity allocated up front, agent.data.stream)."""
+    phi = (state.get("cameras") or {}).get("phi") if isinstance(state, dict) else None
+    return int(phi.shape[0]) if isinstance(phi, Tensor) and phi.ndim == 2 else None
+
+
 def load_for_eval(run_dir: str | Path, data_dir: str | Path, round: int | None = None,
                   device: str | None = None) -> RobotTrainer:
     """Rebuild a robot's trainer from its run folder (final checkpoint or ``rounds/<k>``).
@@ -294,7 +301,7 @@ def load_robot(run_dir: str | Path, data_dir: str | Path, round: int | None = No
         except InvalidValue as e:
             raise ConfigError(f"--device: {e}") from None
     views = views if views is not None else folder.load_views(data_dir, training.image_width)
-    setup = build_robot(ck.robot_id, views, ck.box_from_shared, training)
+    setup = build_robot(ck.robot_id, views, ck.box_from_shared, training, view_rows=view_rows(ck.trainer))
     trainer = setup.trainer
     load_into(trainer, folder.checkpoint, ck.trainer)
     if round is not None:

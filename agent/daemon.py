@@ -37,6 +37,7 @@ from agent.bootstrap import Bootstrap, BootstrapTiming
 from agent.checkpoint import CheckpointError, RobotCheckpoint, RunFolder, load_into
 from agent.config_io import check
 from agent.data.capture import estimate_scene_box, field_box_mismatch
+from agent.data.stream import ViewStream
 from agent.data.views import Views
 from agent.geometry import box_from_center, pose_summary
 from agent.swarm import RobotSetup, SwarmTrainingConfig, build_robot
@@ -136,11 +137,9 @@ class Stop(Exception):
 def model_spec(setup: RobotSetup) -> ModelSpec:
     """Layout + architecture of theta: robots whose fields differ must not mix parameters."""
     trainer = setup.trainer
-    arch = {
-        "field": dataclasses.asdict(trainer.cfg.field),
-        "box_from_shared": [round(float(x), 9) for x in trainer.box_from_shared.flatten()],
-        "init_seed": trainer.cfg.init_seed,
-    }
+    arch = {"field": dataclasses.asdict(trainer.cfg.field),
+            "box_from_shared": [round(float(x), 9) for x in trainer.box_from_shared.flatten()],
+            "init_seed": trainer.cfg.init_seed}
     return ModelSpec.from_tensors({n: t.cpu().numpy() for n, t in trainer.theta().items()}, arch)
 
 
@@ -154,10 +153,10 @@ class Daemon:
     def __init__(self, robot_id: int, views: Views, box_from_shared: Tensor | None, swarm: SwarmIdentity,
                  training: SwarmTrainingConfig, cfg: DaemonConfig, network: Network, run_dir: Path,
                  initial_pose: Tensor | None = None, log: Callable[[str], None] = print,
-                 warn: Callable[[str], None] | None = None,
-                 summary_views: Views | None = None, align: AlignConfig | None = None) -> None:
+                 warn: Callable[[str], None] | None = None, summary_views: Views | None = None,
+                 align: AlignConfig | None = None, stream: ViewStream | None = None) -> None:
         """summary_views: the same views at the resolution the keyframe summary is computed from
-        (``cfg.summary_width``); None: the training views."""
+        (``cfg.summary_width``); None: the training views. stream: views that grow (its first: ``views``)."""
         if cfg.initial_pose is None or training.train.pose.mode is None:
             raise ValueError("daemon.initial_pose and training.train.pose.mode are unset: resolve them from the "
                              "swarm's frames first (agent.frames.resolve_pose_settings; load_swarm_file does)")
@@ -184,7 +183,7 @@ class Daemon:
             box_from_shared = box_from_center(center, half_size)
         elif (mismatch := field_box_mismatch(views, training.train.field.unbounded)) is not None:
             self.report.warn(mismatch)  # the split sized the box for the field the images call for
-        self.setup = build_robot(robot_id, views, box_from_shared, training, initial_pose, is_reference=False)
+        self.setup = build_robot(robot_id, views, box_from_shared, training, initial_pose, stream=stream)
         self.trainer = self.setup.trainer
         self.mailbox: Mailbox[ThetaSnapshot] = Mailbox(max_ahead=cfg.max_ahead, last_round=training.rounds)
         self.pace = ClaimPace()
@@ -312,7 +311,7 @@ class Daemon:
             rejected=self.report.rejected_counts(), alignment=s["alignment"], alignment_detail=s["alignment_detail"],
             wall_time=time.time(), seconds_compute=float(s.get("seconds_compute", 0.0)),
             seconds_wait=float(s.get("seconds_wait", 0.0)), alive_ages=self.presence.alive.report(),
-            suspects=self.vigilance.suspects())
+            suspects=self.vigilance.suspects(), views=s.get("views"))
 
     # ------------------------------------------------------------------ checkpoints
     def _checkpoint(self) -> None:
@@ -389,8 +388,7 @@ class Daemon:
                 self.bootstrap.coarse_alignment()
             if (move := self.rejoin.join(self.round)) is not None:
                 self.round = move.to_round
-                self._moves.append({"kind": move.kind, "from": move.from_round, "to": move.to_round,
-                                    "adopted": list(move.adopted)})
+                self._moves.append(move.record())
             self._apply_reference()
             self.vigilance.armed = True
             self.report.event("start", resumed=resumed, alive=sorted(self.membership.alive),
@@ -428,6 +426,7 @@ class Daemon:
         t0, cpu0 = time.monotonic(), time.process_time()
         aligned = self._in_consensus()
         self.board.set(phase="training")
+        self.setup.admit()  # the keyframes that arrived meanwhile (a stream)
         self.trainer.begin_round(k, to_torch(heard_in if aligned else {}), own=self._as_received(k))
         stats = self.trainer.train(self.training.steps_per_round, on_step=self._check_stop)
         self.round = k + 1
@@ -478,8 +477,7 @@ class Daemon:
         if move is None:
             return heard
         self.round = move.to_round
-        self._moves.append({"kind": move.kind, "from": move.from_round, "to": move.to_round,
-                            "adopted": list(move.adopted)})
+        self._moves.append(move.record())
         # Neighbours already at the target are waiting for our snapshot of it: send our current
         # theta as such at once, or they time out and the swarm stays out of phase.
         self._publish_theta(move.to_round)

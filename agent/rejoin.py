@@ -59,6 +59,10 @@ class Move:
     adopted: tuple[int, ...]  # the neighbours whose models were voted on (none: the robot kept its own)
     heard: dict[int, ThetaSnapshot]  # the models there, the next round's anchors
 
+    def record(self) -> dict:
+        """As done.json lists it."""
+        return {"kind": self.kind, "from": self.from_round, "to": self.to_round, "adopted": list(self.adopted)}
+
 
 class Rejoin:
     """Joins and catch-ups of one robot (see the module docstring)."""

@@ -17,6 +17,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from agent.data.stream import StreamRound
 from agent.geometry import pose_summary
 from agent.swarm import RobotSetup
 from agent.telemetry import JsonLines, PlateauRule, Reporter, RoundRecord, StatusBoard
@@ -27,6 +28,22 @@ from protocol.messages import Alignment
 from protocol.network import Network
 
 __all__ = ["RoundTimes", "RoundReport"]
+
+
+def _record_views(s: StreamRound | None) -> dict:
+    """The stream's figures for the round's record (none when the views were all given at start)."""
+    if s is None:
+        return {}
+    return {"keyframes": s.keyframes, "keyframes_admitted": s.admitted, "keyframes_held_out": s.held_out,
+            "keyframes_dropped": s.dropped, "keyframe_age_s": s.newest_age_s, "coverage": s.coverage}
+
+
+def _status_views(s: StreamRound | None) -> dict | None:
+    """What a heartbeat says of the robot's views so far (``protocol.messages.Status.views``)."""
+    if s is None:
+        return None
+    return {"keyframes": s.keyframes, "held_out": s.held_out_total, "dropped": s.dropped_total,
+            "newest_age_s": s.newest_age_s, "coverage": s.coverage}
 
 
 @dataclass(frozen=True)
@@ -65,12 +82,15 @@ class RoundReport:
         round's line and any warning. ``heard`` None: out of consensus (unaligned).
         ``extra``: further RoundRecord fields (the robust consensus' figures)."""
         matrix, summary = self._pose()
+        views = self.setup.stream.round_stats() if self.setup.stream is not None else None
+        extra = {**extra, **_record_views(views)}
         record = self._record(round_index, stats, heard or [], elected, matrix, summary, times, float32_bytes, extra)
         self.telemetry.write_line(record.to_json())
         net = self.net.stats()
         self.board.set(phase="round_done", loss=stats.loss, psnr=record.psnr, heard=record.heard,
                        bytes_in_total=net["bytes_in_total"], bytes_out_total=net["bytes_out_total"],
-                       seconds_compute=times.compute_s, seconds_wait=times.wait_s, pose7=summary["params7"])
+                       seconds_compute=times.compute_s, seconds_wait=times.wait_s, pose7=summary["params7"],
+                       views=_status_views(views))
         (self.report.warn if record.alignment == "unaligned" else self.report.say)(record.log_line(self.rounds))
         self._warn_if_flat(stats.rgb_loss)
         self._warn_if_isolated(heard, float32_bytes)

@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from agent.consensus import ConsensusConfig, disagreement
+from agent.data.stream import ViewStream
 from agent.data.views import Views
 from agent.geometry import pose_summary
 from agent.telemetry import RoundRecord
@@ -80,6 +81,13 @@ class RobotSetup:
     robot_id: int
     trainer: RobotTrainer
     holdout: Views | None  # the robot's own held-out views (local frame), for its log line
+    stream: ViewStream | None = None  # views that arrive while it trains (None: all given at start)
+
+    def admit(self) -> None:
+        """Take in the keyframes that arrived (a stream), and the held-out views they bring."""
+        if self.stream is not None:
+            self.stream.admit()
+            self.holdout = self.stream.holdout_views()
 
 
 def build_robot(
@@ -89,15 +97,26 @@ def build_robot(
     cfg: SwarmTrainingConfig,
     initial_pose: Tensor | None = None,
     is_reference: bool = False,
+    stream: ViewStream | None = None,
+    view_rows: int | None = None,
 ) -> RobotSetup:
-    train_views, holdout = own_holdout_split(views, cfg.own_holdout_every)
+    """stream: the robot's views grow while it trains; ``views`` are then its training keyframes so
+    far (:meth:`ViewStream.initial_views`), and the stream holds its own held-out ones out.
+    view_rows: the per-view state's rows of a checkpoint to load (:func:`agent.checkpoint.view_rows`)."""
+    if stream is None:
+        train_views, holdout = own_holdout_split(views, cfg.own_holdout_every)
+    else:
+        train_views, holdout = views, stream.holdout_views()
     tcfg = dataclasses.replace(
         cfg.train, seed=robot_seed(cfg.seed, robot_id), init_seed=cfg.seed, total_steps=cfg.total_steps
     )
-    trainer = RobotTrainer(train_views, tcfg, box_from_shared, initial_pose, consensus=cfg.consensus)
+    trainer = RobotTrainer(train_views, tcfg, box_from_shared, initial_pose, consensus=cfg.consensus, rays=stream,
+                           view_rows=view_rows)
+    if stream is not None:
+        stream.attach(trainer)
     if is_reference:
         trainer.pose.freeze()
-    return RobotSetup(robot_id, trainer, holdout)
+    return RobotSetup(robot_id, trainer, holdout, stream)
 
 
 class ProtocolWire:

@@ -63,6 +63,13 @@ class RoundRecord:
     disagreement: float | None = None  # ||theta_i - mean|| / ||mean|| (the simulation knows it)
     clipped: dict[int, float] = field(default_factory=dict)  # per neighbour clipped this round: its smallest factor
     suspects: dict[int, str] = field(default_factory=dict)  # neighbours not trusted, and why (messages.SUSPICIONS)
+    # Views that arrive while training (agent.data.stream; None: all given at start)
+    keyframes: int | None = None  # training keyframes so far
+    keyframes_admitted: int | None = None  # ... admitted this round
+    keyframes_held_out: int | None = None  # held out this round
+    keyframes_dropped: int | None = None  # frames that became no keyframe this round (no pose, over capacity)
+    keyframe_age_s: float | None = None  # since the newest keyframe reached the robot
+    coverage: list[float] | None = None  # extent of the camera centres so far per axis (local units)
 
     def to_json(self) -> str:
         doc = dataclasses.asdict(self)
@@ -101,8 +108,17 @@ class RoundRecord:
             f" ({state}) | heard {self.heard}/{self.reachable} | "
             f"in {sum(self.bytes_in.values()) / 1e6:.1f} MB out {self.bytes_out / 1e6:.1f} MB"
             f"{f' ({self.wire_ratio:.3f} of float32)' if self.wire_ratio is not None and self.wire_ratio < 0.9 else ''} | "
-            f"compute {self.seconds_compute:.1f} s wait {self.seconds_wait:.1f} s"
+            f"compute {self.seconds_compute:.1f} s wait {self.seconds_wait:.1f} s{self._views_text()}"
         )
+
+    def _views_text(self) -> str:
+        """The stream's part of the log line: keyframes so far (+ this round), the newest's age, the area."""
+        if self.keyframes is None:
+            return ""
+        age = "-" if self.keyframe_age_s is None else f"{self.keyframe_age_s:.1f} s"
+        area = " x ".join(f"{x:.2f}" for x in self.coverage) if self.coverage else "-"
+        return (f" | keyframes {self.keyframes} (+{self.keyframes_admitted}, held out +{self.keyframes_held_out}, "
+                f"dropped +{self.keyframes_dropped}) newest {age} ago, area {area}")
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field as config_field
-from typing import Callable, Literal, Mapping
+from typing import TYPE_CHECKING, Callable, Literal, Mapping
 
 import torch
 from torch import Tensor, nn
@@ -34,6 +34,9 @@ from agent.nerf.rays import image_rays, pixel_rays
 from agent.nerf.renderer import render_image, render_rays
 from agent.nerf.sampler import MarchConfig
 from agent.pose import PoseConfig, RelativePose
+
+if TYPE_CHECKING:
+    from agent.data.stream import ViewStream
 
 
 @dataclass
@@ -158,7 +161,12 @@ class RobotTrainer:
         box_from_shared: Tensor,
         initial_pose: Tensor | None = None,
         consensus: ConsensusConfig | None = None,
+        rays: "ViewStream | None" = None,
+        view_rows: int | None = None,
     ) -> None:
+        """rays: the pixel source when views grow while training (agent.data.stream.ViewStream): per-view
+        state is sized by ``rays.capacity``, ``views`` are the first. view_rows: per-view state for
+        this many views (a stream run's checkpoint, loaded to render or evaluate)."""
         if cfg.field.unbounded is None:  # images that show their surroundings need all of space modelled
             cfg = dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, unbounded=views.shows_surroundings))
         self.cfg = cfg
@@ -166,8 +174,11 @@ class RobotTrainer:
         dev = self.device
         self.views = views
         self.images = views.images.to(dev)  # [M, H, W, C]
-        self.c2w_local = views.c2w.to(dev).float()  # [M, 4, 4]
-        self.intrinsics = views.intrinsics.to(dev).float()  # [M, 4]
+        self.rays = rays
+        m = rays.capacity if rays is not None else max(len(views), view_rows or 0)
+        pad = m - len(views)  # rows of views still to come: filled by admit_views
+        self.c2w_local = torch.cat([views.c2w, torch.eye(4).expand(pad, 4, 4)]).to(dev).float()  # [M, 4, 4]
+        self.intrinsics = torch.cat([views.intrinsics, views.intrinsics[:1].expand(pad, 4)]).to(dev).float()  # [M, 4]
         self.depth_prior = None if views.depth is None else views.depth.to(dev)  # [M, H, W]
         known = None if self.depth_prior is None else self.depth_prior[self.depth_prior > 0]
         self.depth_unit = float(known.median()) if known is not None and known.numel() else 1.0  # local units
@@ -181,7 +192,6 @@ class RobotTrainer:
         initial = torch.eye(4) if initial_pose is None else initial_pose
         self.pose = RelativePose(initial, box_from_shared, cfg.pose.mode).to(dev)
         self.pose.from_estimate = initial_pose is not None
-        m = len(views)
         self.depth_log_scale = nn.Parameter(torch.zeros(m, device=dev))  # log a_m
         self.depth_shift = nn.Parameter(torch.zeros(m, device=dev))  # b_m
         learn_affine = cfg.depth.weight > 0 and cfg.depth.learn_affine and self.depth_prior is not None
@@ -354,9 +364,30 @@ class RobotTrainer:
         """The robot's views with its refined cameras, back in its local frame (for calibration)."""
         if not self.cfg.cameras.enabled:
             return self.views
-        local = transform_c2w(sim3_inverse(self.pose.matrix().double()), self.cameras_shared().double())
         v = self.views
-        return Views(v.images, local.float().cpu(), self.camera_intrinsics().cpu(), list(v.names), v.depth, v.meta)
+        local = transform_c2w(sim3_inverse(self.pose.matrix().double()), self.cameras_shared()[:len(v)].double())
+        return Views(v.images, local.float().cpu(), self.camera_intrinsics()[:len(v)].cpu(), list(v.names), v.depth,
+                     v.meta)
+
+    def _sample_pixels(self, n: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """n training pixels: view index, row, column [n] each, and their colour [n, C]."""
+        if self.rays is not None:
+            return self.rays.sample(n, self.generator, self.device)
+        m, h, w, _ = self.images.shape
+        img = torch.randint(0, m, (n,), generator=self.generator, device=self.device)
+        px = torch.randint(0, h * w, (n,), generator=self.generator, device=self.device)
+        row, col = px // w, px % w
+        return img, row, col, self.images[img, row, col]
+
+    @torch.no_grad()
+    def admit_views(self, index: int, c2w: Tensor, intrinsics: Tensor, width: int, height: int) -> int:
+        """A view that arrived while training takes row ``index`` (c2w [4, 4] local, intrinsics [4]);
+        the occupancy grid opens where it is the first to look. Returns the cells opened."""
+        self.c2w_local[index] = c2w.to(self.device).float()
+        self.intrinsics[index] = intrinsics.to(self.device).float()
+        c2w_box = self.box_from_shared @ transform_c2w(self.pose.matrix(), self.c2w_local[index:index + 1])[0]
+        return self.grid.open_frustum(c2w_box, self.intrinsics[index], width, height, bool(self.cfg.field.unbounded),
+                                      mark_only=self.step == 0)
 
     def train_step(self) -> dict[str, float]:
         cfg = self.cfg
@@ -373,17 +404,13 @@ class RobotTrainer:
             else:
                 group["lr"] = base * self._lr_factor(step)
 
-        m, h, w, _ = self.images.shape
         n = cfg.rays_per_step
         if cfg.target_samples_per_step > 0:
             n = int(min(max(cfg.target_samples_per_step / max(self.samples_per_ray, 1e-3), cfg.min_rays_per_step), n))
         gen = self.generator
-        img = torch.randint(0, m, (n,), generator=gen, device=self.device)
-        px = torch.randint(0, h * w, (n,), generator=gen, device=self.device)
-        row, col = px // w, px % w
+        img, row, col, pixels = self._sample_pixels(n)  # [n] each, pixels [n, C]
         c2w = self.cameras_shared()[img]  # [n, 4, 4]
         rays = pixel_rays(c2w, self.camera_intrinsics()[img], pixel_centre(col.float()), pixel_centre(row.float()))
-        pixels = self.images[img, row, col]  # [n, C]
         bg = self._background(n)
         if pixels.shape[-1] == 4:
             target = pixels[:, :3] * pixels[:, 3:] + (1 - pixels[:, 3:]) * bg

@@ -20,7 +20,7 @@ def status_table(latest: dict, now: float, swarm_name: str) -> Table:
     """One row per robot from its newest Status (``latest``: id -> (Status, received monotonic))."""
     table = Table(title=f"swarm {swarm_name} — {len(latest)} robot(s) heard")
     for col in ("robot", "round", "phase", "loss", "psnr", "pose est. (deg, |t|, s)", "frame", "heard", "in MB",
-                "out MB", "rejected", "distrusts", "ref", "alive", "seen"):
+                "out MB", "rejected", "distrusts", "ref", "alive", "keyframes", "seen"):
         table.add_column(col, justify="right" if col not in ("phase", "frame", "heard", "distrusts", "alive") else "left")
     for rid in sorted(latest):
         msg, seen = latest[rid]
@@ -36,6 +36,7 @@ def status_table(latest: dict, now: float, swarm_name: str) -> Table:
             f"{msg.bytes_in / 1e6:.1f}", f"{msg.bytes_out / 1e6:.1f}",
             str(sum(msg.rejected.values())), _suspects(msg), str(msg.reference),
             ",".join(map(str, sorted(msg.alive_ages))) or "-",
+            _views(msg),
             f"{now - seen:.1f} s ago",
         )
     return table
@@ -53,10 +54,20 @@ def status_json(latest: dict, now: float, swarm_name: str) -> str:
             "pose": list(msg.pose), "alignment": msg.alignment.value, "alignment_detail": msg.alignment_detail,
             "heard": list(msg.neighbours_heard), "bytes_in": msg.bytes_in, "bytes_out": msg.bytes_out,
             "rejected": dict(msg.rejected), "suspects": {str(j): why for j, why in sorted(msg.suspects.items())},
-            "reference": msg.reference, "alive": sorted(msg.alive_ages),
+            "reference": msg.reference, "alive": sorted(msg.alive_ages), "views": msg.views,
             "seen_s_ago": round(now - seen, 3),
         })
     return json.dumps({"swarm": swarm_name, "robots": robots}, indent=2)
+
+
+def _views(msg) -> str:
+    """A robot whose views arrive while it trains: keyframes (held out, dropped), the newest's age, the area."""
+    v = msg.views
+    if v is None:
+        return "-"
+    age = "-" if v["newest_age_s"] is None else f"{v['newest_age_s']:.1f} s"
+    area = " x ".join(f"{x:.1f}" for x in v["coverage"]) if v["coverage"] else "-"
+    return f"{v['keyframes']} (+{v['held_out']} held, {v['dropped']} dropped), newest {age}, area {area}"
 
 
 def _suspects(msg) -> str:

@@ -29,6 +29,10 @@ def up(
     listen: list[str] = typer.Option([], "--listen", help="Zenoh endpoint to listen on (repeatable)."),
     connect: list[str] = typer.Option([], "--connect", help="Zenoh endpoint to connect to (repeatable)."),
     overrides: list[str] = typer.Option([], "--set", help="Override a swarm-file setting, e.g. --set training.rounds=5 (repeatable)."),
+    replay: float = typer.Option(None, "--replay", help="Train while the bag --data plays at this multiple of its "
+                                 "recorded pace (1.0: real time): its keyframes join as they arrive ([data.stream])."),
+    live: list[str] = typer.Option([], "--live", help="Train while this robot's camera streams over Zenoh: its "
+                                   "local router (rmw_zenoh, e.g. tcp/localhost:7447); --data holds its swarm file."),
 ) -> None:
     """Join the swarm and train: one robot's daemon (resumes from --run-dir if it holds a checkpoint)."""
     from agent.checkpoint import RunFolder
@@ -41,6 +45,7 @@ def up(
     from protocol.transport import TransportError, ZenohTransport
 
     from cli.options import check_output_folder, progress_listener
+    from cli.view_source import start_stream
 
     from agent.data.ros import is_bag
 
@@ -49,6 +54,9 @@ def up(
                         "ROS 2 bag)")
     if data.is_file() and not is_bag(data):
         raise UserError(f"--data {data}: not a folder or a ROS 2 bag file (.mcap, .db3)")
+    if replay is not None and (live or not is_bag(data)):
+        raise UserError("--replay plays the ROS 2 bag given as --data; it does not go with --live" if live else
+                        f"--replay: --data {data} is not a ROS 2 bag (rosbag2 folder, .mcap, .db3)")
     swarm_path = swarm or find_swarm_file(data)
     if swarm_path is None:
         raise UserError(f"no --swarm given and no swarm.toml beside or inside {data}")
@@ -66,14 +74,20 @@ def up(
     transport_cfg = cfg.transport_for(robot_id, listen, connect, tls_dir=tls_dir)  # checks the certificate first
     folder = RunFolder(run_dir, create=False)  # made once the data loaded: bad data leaves no run folder
     # images only: SfM on the full-size images (cached); a bag: its keyframes (cached); then downscaled
-    with progress_listener():
-        views = folder.load_views(data, cfg.training.image_width, sfm=cfg.sfm, ros=cfg.data.ros)
-        summary_views = None  # the keyframe summary's features come from the sharper images when there are any
-        if cfg.daemon.initial_pose == "coarse" and cfg.daemon.summary_width != cfg.training.image_width:
-            full = folder.load_views(data, cfg.daemon.summary_width, sfm=cfg.sfm, ros=cfg.data.ros)
-            summary_views = full if full.width != views.width else None
+    source = None
+    if replay is not None or live:  # views that arrive while it trains: the first ones make the box and summary
+        source, views, summary_views = start_stream(cfg, data, folder.keyframe_cache, replay, live,
+                                                    lambda t: _log(f"[robot {robot_id}] {t}"))
+    else:
+        with progress_listener():
+            views = folder.load_views(data, cfg.training.image_width, sfm=cfg.sfm, ros=cfg.data.ros)
+            summary_views = None  # the keyframe summary's features come from the sharper images when there are any
+            if cfg.daemon.initial_pose == "coarse" and cfg.daemon.summary_width != cfg.training.image_width:
+                full = folder.load_views(data, cfg.daemon.summary_width, sfm=cfg.sfm, ros=cfg.data.ros)
+                summary_views = full if full.width != views.width else None
     run_folder = RunFolder(run_dir)
-    run_folder.write_data_record(data, swarm_path)  # render/eval/export find the views through it
+    # render/eval/export find the views through it (a stream's: the keyframes it kept, not its source)
+    run_folder.write_data_record(data if source is None else folder.keyframe_cache, swarm_path)
     run_folder.write_config(dumps(to_dict(cfg), show_unset=True))  # what it runs with, agent.defaults fitted
     if views.meta.get("bag_settings_changed"):
         LOGGER.warning(f"[robot {robot_id}] {views.meta['notes'][-1]}")
@@ -81,6 +95,8 @@ def up(
     try:
         transport = ZenohTransport(transport_cfg, Keys(cfg.swarm.name), robot_id).open()
     except TransportError as e:
+        if source is not None:
+            source.close()
         raise UserError(f"cannot open the Zenoh session: {e}") from None
     daemon = None
     stopped_by: list[int] = []
@@ -92,18 +108,21 @@ def up(
     try:
         daemon = Daemon(robot_id, views, box, cfg.identity(), cfg.training, cfg.daemon,
                         transport, run_dir, log=_log, summary_views=summary_views, align=cfg.align,
-                        warn=LOGGER.warning)
+                        warn=LOGGER.warning, stream=source.stream if source is not None else None)
         for sig in _EXIT_ON:
             signal.signal(sig, stop)
         (LOGGER.warning if cfg.security.insecure else _log)(_security_line(robot_id, cfg, transport_cfg))
         _log(f"[robot {robot_id}] up: swarm '{cfg.swarm.name}' ({cfg.topology.kind}: "
-             f"neighbours {sorted(cfg.graph().neighbours(robot_id))}), {len(views)} views, "
+             f"neighbours {sorted(cfg.graph().neighbours(robot_id))}), "
+             f"{source.stream.describe() if source else f'{len(views)} views'}, "
              f"listen {transport_cfg.listen}, connect {transport_cfg.connect}, run dir {run_dir}")
         daemon.run()
     except RuntimeError as e:  # e.g. an unusable checkpoint
         raise UserError(str(e)) from None
     finally:
         transport.close()
+        if source is not None:
+            source.close()
     sys.stdout.flush()
     if stopped_by:
         _log(f"[robot {robot_id}] stopped by {signal.Signals(stopped_by[0]).name}: the checkpoint of the last "

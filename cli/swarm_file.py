@@ -20,6 +20,7 @@
     [align]                      # agent.align.AlignConfig (keyframe summaries, matching)
     [sfm]                        # agent.data.sfm.SfmConfig (robots with images only)
     [data.ros]                   # agent.data.ros.RosBagConfig (robots with ROS 2 bags)
+    [data.stream]                # agent.data.stream.StreamConfig (up --replay / --live: views that arrive)
     [security]                   # protocol.pki.SecurityConfig: mutual TLS + access control, or insecure
 
 Unless ``[security] insecure = true``, every endpoint is ``tls/``, each robot presents the

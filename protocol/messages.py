@@ -28,7 +28,7 @@ import hashlib
 import json
 import math
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -37,7 +37,8 @@ from protocol.untrusted import describe
 #: Bumped whenever the header or a body changes incompatibly; peers on another version are refused.
 #: 2: Status.alignment is an :class:`Alignment` value, with its free text in alignment_detail.
 #: 3: Status.suspects: the neighbours the sender does not trust, and why.
-SCHEMA_VERSION = 3
+#: 4: Status.views: keyframes so far, held out, dropped, the newest's age, the area covered.
+SCHEMA_VERSION = 4
 
 #: Why a robot distrusts a neighbour (Status.suspects): its claimed round runs ahead of its pace,
 #: its models are clipped or move erratically (robust consensus), it is quarantined for that, or
@@ -285,6 +286,8 @@ class Status:
     alive_ages: dict[int, float] = field(default_factory=dict)
     #: Neighbours the sender does not trust: {robot id: one of :data:`SUSPICIONS`}.
     suspects: dict[int, str] = field(default_factory=dict)
+    #: A robot whose views arrive while it trains (None: all given at start): :data:`VIEWS_FIELDS`.
+    views: dict | None = None
     header: Header | None = None
 
     kind = KIND_STATUS
@@ -307,7 +310,13 @@ class Status:
         "seconds_wait",
         "alive_ages",
         "suspects",
+        "views",
     )
+
+
+#: Status.views: training keyframes, held out and dropped so far, the newest's age (s, or None)
+#: and the extent of the camera centres per axis ([3], or None).
+VIEWS_FIELDS = ("keyframes", "held_out", "dropped", "newest_age_s", "coverage")
 
 
 @dataclass
@@ -476,7 +485,25 @@ def check_status_body(body: Any) -> dict[str, Any]:
     ):
         raise bad("suspects", f"expected a list of [robot id, one of {list(SUSPICIONS)}]")
     out["suspects"] = {int(i): str(why) for i, why in suspects}
+    out["views"] = _check_views(body["views"], bad)
     return out
+
+
+def _check_views(views: Any, bad: Callable[[str, str], Rejected]) -> dict | None:
+    if views is None:
+        return None
+    if not isinstance(views, dict) or set(views) != set(VIEWS_FIELDS):
+        raise bad("views", f"expected a map of exactly {list(VIEWS_FIELDS)}")
+    for name in ("keyframes", "held_out", "dropped"):
+        if not is_int(views[name]) or not 0 <= views[name] <= MAX_ROUND:
+            raise bad("views", f"{name}: expected a non-negative count")
+    age, cover = views["newest_age_s"], views["coverage"]
+    if age is not None and not (is_number(age) and math.isfinite(age) and age >= 0):
+        raise bad("views", "newest_age_s: expected a non-negative number or nil")
+    if cover is not None and not (isinstance(cover, list) and len(cover) == 3 and all(
+            is_number(v) and math.isfinite(v) and v >= 0 for v in cover)):
+        raise bad("views", "coverage: expected 3 non-negative numbers or nil")
+    return {k: views[k] if k != "coverage" or cover is None else [float(v) for v in cover] for k in VIEWS_FIELDS}
 
 
 def status_body(msg: Status) -> dict[str, Any]:
@@ -498,4 +525,9 @@ def status_body(msg: Status) -> dict[str, Any]:
         "seconds_wait": float(msg.seconds_wait),
         "alive_ages": [[int(i), float(a)] for i, a in sorted(msg.alive_ages.items())],
         "suspects": [[int(i), str(why)] for i, why in sorted(msg.suspects.items())],
+        "views": None if msg.views is None else {
+            "keyframes": int(msg.views["keyframes"]), "held_out": int(msg.views["held_out"]),
+            "dropped": int(msg.views["dropped"]),
+            "newest_age_s": None if msg.views["newest_age_s"] is None else float(msg.views["newest_age_s"]),
+            "coverage": None if msg.views["coverage"] is None else [float(v) for v in msg.views["coverage"]]},
     }

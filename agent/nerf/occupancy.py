@@ -42,6 +42,7 @@ class OccupancyGrid:
         ii = torch.arange(r, device=self.device)
         grid = torch.stack(torch.meshgrid(ii, ii, ii, indexing="ij"), -1).reshape(-1, 3)  # [C, 3] (x, y, z)
         self._cell_xyz = grid.to(torch.int32)
+        self.seen = torch.zeros(r**3, dtype=torch.bool, device=self.device)  # [C] in some admitted camera's view
 
     # --- queries -------------------------------------------------------------------------
     def cell_index(self, x: Tensor) -> Tensor:
@@ -96,6 +97,40 @@ class OccupancyGrid:
             # densest cells rather than prune everything, which no gradient could ever undo.
             occupied = self.density >= self.density.max()
         self.occupied = occupied
+
+    @torch.no_grad()
+    def open_frustum(self, c2w_box: Tensor, intrinsics: Tensor, width: int, height: int, unbounded: bool,
+                     mark_only: bool = False) -> int:
+        """Open the cells a new camera is the first to see (``c2w_box`` [4, 4] in box coordinates,
+        OpenGL; ``intrinsics`` [4]); returns how many were closed before.
+
+        A keyframe that arrives while the robot trains may look at space the grid pruned because no
+        keyframe had trained it yet: marching would skip it and the field could never learn it.
+        Only cells no earlier camera saw are opened (re-opening what the field has trained kept the
+        whole grid open in a room, where every camera sees most of it; streamed training stalled
+        then, 7.7 dB against 20.7 offline, benchmarks/bench_stream.py --sampling), with a density
+        just above the threshold, so they stay open until the update visits them again.
+        ``mark_only``: only remember the cells as seen (the first keyframes, before the warm-up)."""
+        r = self.cfg.resolution
+        x = (self._cell_xyz.float() + 0.5) * (2.0 / r) - 1  # [C, 3] grid coordinates
+        if unbounded:  # the inverse of agent.nerf.contraction.contract
+            u = 2 * x
+            n = u.abs().amax(-1, keepdim=True).clamp(max=1.999)
+            x = torch.where(n > 1, u / n / (2 - n), u)
+        w2c = torch.linalg.inv(c2w_box.to(self.device).float())
+        p = x @ w2c[:3, :3].T + w2c[:3, 3]  # [C, 3] camera coordinates, looking down -z
+        depth = -p[:, 2]
+        fx, fy, cx, cy = [float(v) for v in intrinsics]
+        safe = depth.clamp(min=1e-6)
+        col, row = cx + fx * p[:, 0] / safe, cy - fy * p[:, 1] / safe
+        in_view = (depth > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
+        new, self.seen = in_view & ~self.seen, self.seen | in_view
+        if mark_only:
+            return 0
+        opened = int((new & ~self.occupied).sum())
+        self.density[new] = self.density[new].clamp(min=1.05 * self.cfg.density_threshold)
+        self.occupied |= new
+        return opened
 
     # --- persistence (checkpoints) -------------------------------------------------------
     def state_dict(self) -> dict[str, Tensor]:

@@ -11,7 +11,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from agent.checkpoint import load_into
+from agent.checkpoint import load_into, view_rows
 from agent.data.views import DataError, Views
 from agent.runs import RobotRun
 from agent.statefile import CheckpointError
@@ -56,7 +56,8 @@ class RobotModel:
             width = ck.training.image_width
             if width not in self._views:
                 self._views[width] = folder.load_views(self.source.data_dir, width)
-            trainer = build_robot(ck.robot_id, self._views[width], ck.box_from_shared, ck.training).trainer
+            trainer = build_robot(ck.robot_id, self._views[width], ck.box_from_shared, ck.training,
+                                  view_rows=view_rows(ck.trainer)).trainer
             load_into(trainer, folder.checkpoint, ck.trainer)
         except (CheckpointError, DataError, OSError) as e:
             self.error = " ".join(str(e).split())

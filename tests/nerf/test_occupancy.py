@@ -93,3 +93,24 @@ def test_after_warmup_an_update_visits_a_random_quarter_plus_a_quarter_of_the_oc
     # the occupied cells are visited about twice as often as a uniform draw would visit them
     share = float(occupied_before[visited].float().mean())
     assert share > 1.6 * float(occupied_before.float().mean())
+
+
+@pytest.mark.parametrize("unbounded", [False, True])
+def test_open_frustum_opens_what_a_new_camera_sees_and_nothing_behind_it(unbounded):
+    from agent.nerf.occupancy import OccupancyConfig, OccupancyGrid
+
+    grid = OccupancyGrid(OccupancyConfig(resolution=16))
+    grid.occupied[:] = False
+    c2w = torch.eye(4)  # at the centre, looking down -z (OpenGL)
+    opened = grid.open_frustum(c2w, torch.tensor([8.0, 8.0, 8.0, 8.0]), 16, 16, unbounded)
+    centres = (grid._cell_xyz.float() + 0.5) * (2.0 / 16) - 1
+    ahead = (centres[:, 2] < -0.1) & (centres[:, :2].abs() < 0.5 * -centres[:, 2:3]).all(-1)
+    behind = centres[:, 2] > 0.1
+    assert opened == int(grid.occupied.sum()) > 0
+    assert bool(grid.occupied[ahead].all()) and not bool(grid.occupied[behind].any())
+    assert float(grid.density[grid.occupied].min()) > grid.cfg.density_threshold
+    grid.occupied[:] = False  # the field pruned it since: a second camera there reopens nothing it saw
+    assert grid.open_frustum(c2w, torch.tensor([8.0, 8.0, 8.0, 8.0]), 16, 16, unbounded) == 0
+    turned = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0]))  # looking the other way: all new
+    assert grid.open_frustum(turned, torch.tensor([8.0, 8.0, 8.0, 8.0]), 16, 16, unbounded) > 0
+    assert bool(grid.occupied[behind & (centres[:, :2].abs() < 0.5 * centres[:, 2:3]).all(-1)].all())

@@ -71,8 +71,11 @@ def test_encode_refuses_what_peers_would_reject():
         encode(snapshot(), spec=other)
 
 
+VIEWS = {"keyframes": 42, "held_out": 5, "dropped": 1, "newest_age_s": 0.4, "coverage": [2.0, 1.0, 0.25]}
+
+
 def test_status_round_trip_and_type_checks():
-    msg = status_message(suspects={3: "quarantined", 5: "ahead_of_pace"})
+    msg = status_message(suspects={3: "quarantined", 5: "ahead_of_pace"}, views=VIEWS)
     got = decode(encode(msg), expectation(), kind="status")
     assert isinstance(got, Status)
     for name in Status.BODY_FIELDS + ("swarm", "sender", "round", "epoch"):
@@ -84,7 +87,10 @@ def test_status_round_trip_and_type_checks():
                                  ("bytes_in", -1, "bad_field"), ("neighbours_heard", [True], "bad_field"),
                                  ("psnr", float("nan"), "non_finite"), ("phase", 3, "bad_field"),
                                  ("suspects", [[3, "evil"]], "bad_field"), ("suspects", [[-1, "refused"]], "bad_field"),
-                                 ("suspects", {"3": "refused"}, "bad_field")]:
+                                 ("suspects", {"3": "refused"}, "bad_field"),
+                                 ("views", dict(VIEWS, keyframes=-1), "bad_field"),
+                                 ("views", dict(VIEWS, coverage=[1.0, float("nan"), 0.0]), "bad_field"),
+                                 ("views", {"keyframes": 3}, "bad_field"), ("views", [1, 2], "bad_field")]:
         bad = dict(body, **{field: value})
         raw = msgpack.packb(bad)
         frame = codec.pack_frame(dict(header, raw_length=len(raw), payload_length=len(raw)), raw)

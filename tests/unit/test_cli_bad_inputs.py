@@ -221,3 +221,27 @@ def test_a_bag_that_cannot_give_views_is_one_line_and_leaves_no_run_folder(tmp_p
         _fails_in_one_line(["up", "--id", 1, "--data", path, "--swarm", swarm / "swarm.toml", "--tls",
                             swarm / "robot1" / "tls", "--run-dir", run_dir], text)
         assert not (tmp_path / "runs").exists()  # nothing written: no run folder, no keyframes
+
+
+def test_up_replay_and_live_refuse_what_they_cannot_play(split, tmp_path):
+    from tests.data.bags import camera_bag
+
+    robot1, swarm = split / "robot1", split / "swarm.toml"
+    _fails_in_one_line(["up", "--id", 1, "--data", robot1, "--replay", 1.0], "is not a ROS 2 bag")
+    _fails_in_one_line(["up", "--id", 1, "--data", robot1, "--replay", 1.0, "--live", "tcp/127.0.0.1:9"],
+                       "does not go with --live")
+    bag = camera_bag(tmp_path / "bag")
+    _fails_in_one_line(["up", "--id", 1, "--data", bag, "--swarm", swarm, "--tls", robot1 / "tls", "--replay", -1,
+                        "--run-dir", tmp_path / "run1"], "must be >= 0")
+    _fails_in_one_line(["up", "--id", 1, "--data", robot1, "--live", "tcp/127.0.0.1:9", "--run-dir", tmp_path / "run2",
+                        "--set", "data.stream.start_timeout_s=1"], "no Zenoh router answered at tcp/127.0.0.1:9")
+    from protocol.ros_camera import open_router
+    from tests.protocol.helpers import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_router([endpoint])  # a router, but no camera behind it
+    try:
+        _fails_in_one_line(["up", "--id", 1, "--data", robot1, "--live", endpoint, "--run-dir", tmp_path / "run3",
+                            "--set", "data.stream.start_timeout_s=1"], "no keyframe arrived within 1 s")
+    finally:
+        router.close()

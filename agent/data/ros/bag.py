@@ -402,6 +402,8 @@ def load_bag(path: str | Path, *, width: int | None = None, cfg: RosBagConfig | 
 
     cfg = cfg or RosBagConfig()
     path = Path(path)
+    if cache_dir is not None and _streamed(Path(cache_dir)):  # kept while the robot trained (up --replay)
+        return load_transforms(Path(cache_dir) / "transforms.json", width=width, load_depth=False)
     if cache_dir is not None:
         cache = Path(cache_dir)
         record = _read_record(cache)
@@ -426,6 +428,14 @@ def load_bag(path: str | Path, *, width: int | None = None, cfg: RosBagConfig | 
         views = load_transforms(Path(tmp) / "keyframes" / "transforms.json", width=width, load_depth=False)
     _describe(views, record, cfg)
     return views
+
+
+def _streamed(folder: Path) -> bool:
+    """Keyframes that agent.data.stream wrote as they arrived: the run's own, never read again from the bag."""
+    try:
+        return json.loads((folder / "transforms.json").read_text()).get("dinerf", {}).get("source") == "stream"
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 def _read_record(folder: Path) -> dict | None:

@@ -13,7 +13,7 @@ import numpy as np
 
 from agent.data.ros.config import KeyframeConfig
 
-__all__ = ["KeyframePlan", "plan_keyframes", "AUTO_TRANSLATION_FRACTION"]
+__all__ = ["KeyframePlan", "plan_keyframes", "OnlineKeyframer", "AUTO_TRANSLATION_FRACTION"]
 
 AUTO_TRANSLATION_FRACTION = 0.02  # min_translation = 0: this fraction of the trajectory's extent
 
@@ -26,16 +26,21 @@ class KeyframePlan:
     triggers_unbudgeted: int  # keyframes the configured thresholds alone would give
 
 
+def _moved_or_turned(c_j: np.ndarray, r_j: np.ndarray, c_i: np.ndarray, r_i: np.ndarray, min_t: float,
+                     min_r_deg: float) -> bool:
+    """Whether camera i moved ``min_t`` or turned ``min_r_deg`` from camera j (centres [3], rotations [3, 3])."""
+    moved = min_t > 0 and np.linalg.norm(c_i - c_j) >= min_t
+    # angle of R_j^T R_i from its trace: cos = (tr - 1) / 2
+    turned = min_r_deg > 0 and (np.trace(r_j.T @ r_i) - 1) / 2 <= np.cos(np.radians(min_r_deg))
+    return bool(moved or turned)
+
+
 def _triggers(centres: np.ndarray, rots: np.ndarray, min_t: float, min_r_deg: float) -> list[int]:
     """Greedy: frame 0, then every frame that moved ``min_t`` or turned ``min_r_deg`` since the last trigger."""
     out = [0]
-    cos_min = np.cos(np.radians(min_r_deg) if min_r_deg > 0 else np.inf)
     for i in range(1, len(centres)):
         j = out[-1]
-        moved = min_t > 0 and np.linalg.norm(centres[i] - centres[j]) >= min_t
-        # angle of R_j^T R_i from its trace: cos = (tr - 1) / 2
-        turned = min_r_deg > 0 and (np.trace(rots[j].T @ rots[i]) - 1) / 2 <= cos_min
-        if moved or turned:
+        if _moved_or_turned(centres[j], rots[j], centres[i], rots[i], min_t, min_r_deg):
             out.append(i)
     return out
 
@@ -71,3 +76,57 @@ def plan_keyframes(c2w: np.ndarray, cfg: KeyframeConfig) -> KeyframePlan:
     ends = triggers[1:] + [n]
     windows = [list(range(t, min(t + cfg.sharpness_window, end))) for t, end in zip(triggers, ends)]
     return KeyframePlan(windows, min_t, min_r, unbudgeted)
+
+
+class OnlineKeyframer:
+    """The same rule applied as frames arrive (a bag replayed, a live camera), with no look-ahead.
+
+    A frame opens a window once the camera moved or turned enough since the last window opened;
+    the window's sharpest of ``sharpness_window`` frames becomes the keyframe. ``min_translation =
+    0`` stands for 2% of the trajectory's extent *so far* (the whole one is not known yet). Only
+    the frames of a window need their pixels (``sharpness`` is asked for those alone). The budget
+    is not spread over the trajectory as the offline plan does (the trajectory is not known in
+    advance): keyframes past ``max_keyframes`` are dropped and counted.
+    """
+
+    def __init__(self, cfg: KeyframeConfig) -> None:
+        self.cfg = cfg
+        self._last: tuple[np.ndarray, np.ndarray] | None = None  # the last window's first camera
+        self._lo = self._hi = None  # the trajectory's bounding box so far
+        self._window: list[tuple[float, object]] = []  # (sharpness, frame) of the open window
+        self.kept = 0
+        self.dropped = 0  # keyframes past the budget
+
+    def _min_translation(self, centre: np.ndarray) -> float:
+        self._lo = centre if self._lo is None else np.minimum(self._lo, centre)
+        self._hi = centre if self._hi is None else np.maximum(self._hi, centre)
+        if self.cfg.min_translation > 0:
+            return self.cfg.min_translation
+        return AUTO_TRANSLATION_FRACTION * float(np.linalg.norm(self._hi - self._lo))
+
+    def offer(self, c2w: np.ndarray, frame: object, sharpness) -> object | None:
+        """One posed frame (c2w [4, 4]); ``sharpness(frame)`` is called only for frames in a window.
+        Returns the frame that completes a window as a keyframe, if this one does."""
+        centre, rot = np.asarray(c2w, np.float64)[:3, 3], np.asarray(c2w, np.float64)[:3, :3]
+        min_t = self._min_translation(centre)
+        if not self._window:
+            first = self._last is None
+            if not first and not _moved_or_turned(*self._last, centre, rot, min_t, self.cfg.min_rotation_deg):
+                return None
+            self._last = (centre, rot)
+        self._window.append((float(sharpness(frame)), frame))
+        if len(self._window) < self.cfg.sharpness_window:
+            return None
+        return self.flush()
+
+    def flush(self) -> object | None:
+        """Close the open window (the stream ended): its sharpest frame, within the budget."""
+        if not self._window:
+            return None
+        best = max(self._window, key=lambda w: w[0])[1]
+        self._window = []
+        if self.cfg.max_keyframes and self.kept >= self.cfg.max_keyframes:
+            self.dropped += 1
+            return None
+        self.kept += 1
+        return best
