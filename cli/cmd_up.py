@@ -36,17 +36,39 @@ def up(
 ) -> None:
     """Join the swarm and train: one robot's daemon (resumes from --run-dir if it holds a checkpoint)."""
     from agent.checkpoint import RunFolder
-    from agent.daemon import Daemon
-    from agent.data.folder import read_scene
     from cli.config import to_dict
     from cli.scenario.tomlout import dumps
     from cli.swarm_file import find_swarm_file, load_swarm_file, robot_tls_dir
-    from protocol.keys import Keys
-    from protocol.transport import TransportError, ZenohTransport
+    from cli.options import check_output_folder
 
-    from cli.options import check_output_folder, progress_listener
-    from cli.view_source import start_stream
+    _check_data(data, replay, live)
+    swarm_path = swarm or find_swarm_file(data)
+    if swarm_path is None:
+        raise UserError(f"no --swarm given and no swarm.toml beside or inside {data}")
+    cfg, base_dir = load_swarm_file(swarm_path, overrides)
+    if robot_id not in cfg.swarm.robots:
+        raise UserError(f"--id {robot_id} is not one of the swarm's robots {cfg.swarm.robots} ({swarm_path})")
+    box = _field_box(cfg, base_dir, swarm_path)
+    run_dir = run_dir or Path("runs") / cfg.swarm.name / f"robot{robot_id}"
+    check_output_folder(run_dir, "--run-dir")
+    tls_dir = tls if tls is not None else robot_tls_dir(data, cfg.security.tls_dir)
+    transport_cfg = cfg.transport_for(robot_id, listen, connect, tls_dir=tls_dir)  # checks the certificate first
+    folder = RunFolder(run_dir, create=False)  # made once the data loaded: bad data leaves no run folder
+    source, views, summary_views = _load_views(robot_id, cfg, data, folder, replay, live)
+    run_folder = RunFolder(run_dir)
+    # render/eval/export find the views through it (a stream's: the keyframes it kept, not its source)
+    run_folder.write_data_record(data if source is None else folder.keyframe_cache, swarm_path)
+    run_folder.write_config(dumps(to_dict(cfg), show_unset=True))  # what it runs with, agent.defaults fitted
+    if views.meta.get("bag_settings_changed"):
+        LOGGER.warning(f"[robot {robot_id}] {views.meta['notes'][-1]}")
+    try:
+        _run_daemon(robot_id, cfg, transport_cfg, views, summary_views, box, run_dir, source)
+    finally:
+        if source is not None:
+            source.close()
 
+
+def _check_data(data: Path, replay: float | None, live: list[str]) -> None:
     from agent.data.ros import is_bag
 
     if not data.exists():
@@ -57,46 +79,48 @@ def up(
     if replay is not None and (live or not is_bag(data)):
         raise UserError("--replay plays the ROS 2 bag given as --data; it does not go with --live" if live else
                         f"--replay: --data {data} is not a ROS 2 bag (rosbag2 folder, .mcap, .db3)")
-    swarm_path = swarm or find_swarm_file(data)
-    if swarm_path is None:
-        raise UserError(f"no --swarm given and no swarm.toml beside or inside {data}")
-    cfg, base_dir = load_swarm_file(swarm_path, overrides)
-    if robot_id not in cfg.swarm.robots:
-        raise UserError(f"--id {robot_id} is not one of the swarm's robots {cfg.swarm.robots} ({swarm_path})")
-    # no scene file (`init`: robots with their own recordings): the reference derives the box from its views
+
+
+def _field_box(cfg, base_dir: Path, swarm_path: Path):
+    """The swarm's field box [4, 4], or None without a scene file (`init`: robots with their own
+    recordings), where the reference derives it from its own views."""
+    from agent.data.folder import read_scene
+
     box = read_scene(base_dir / cfg.swarm.scene).box_from_shared if cfg.swarm.scene else None
-    run_dir = run_dir or Path("runs") / cfg.swarm.name / f"robot{robot_id}"
-    check_output_folder(run_dir, "--run-dir")
     if box is None and cfg.daemon.initial_pose != "coarse":
         raise UserError(f"{swarm_path}: the swarm has no field box (no scene file, or robots with images only): set "
                         "daemon.initial_pose = 'coarse' so that the reference shares the box of its own frame")
-    tls_dir = tls if tls is not None else robot_tls_dir(data, cfg.security.tls_dir)
-    transport_cfg = cfg.transport_for(robot_id, listen, connect, tls_dir=tls_dir)  # checks the certificate first
-    folder = RunFolder(run_dir, create=False)  # made once the data loaded: bad data leaves no run folder
-    # images only: SfM on the full-size images (cached); a bag: its keyframes (cached); then downscaled
-    source = None
-    if replay is not None or live:  # views that arrive while it trains: the first ones make the box and summary
-        source, views, summary_views = start_stream(cfg, data, folder.keyframe_cache, replay, live,
-                                                    lambda t: _log(f"[robot {robot_id}] {t}"))
-    else:
-        with progress_listener():
-            views = folder.load_views(data, cfg.training.image_width, sfm=cfg.sfm, ros=cfg.data.ros)
-            summary_views = None  # the keyframe summary's features come from the sharper images when there are any
-            if cfg.daemon.initial_pose == "coarse" and cfg.daemon.summary_width != cfg.training.image_width:
-                full = folder.load_views(data, cfg.daemon.summary_width, sfm=cfg.sfm, ros=cfg.data.ros)
-                summary_views = full if full.width != views.width else None
-    run_folder = RunFolder(run_dir)
-    # render/eval/export find the views through it (a stream's: the keyframes it kept, not its source)
-    run_folder.write_data_record(data if source is None else folder.keyframe_cache, swarm_path)
-    run_folder.write_config(dumps(to_dict(cfg), show_unset=True))  # what it runs with, agent.defaults fitted
-    if views.meta.get("bag_settings_changed"):
-        LOGGER.warning(f"[robot {robot_id}] {views.meta['notes'][-1]}")
+    return box
+
+
+def _load_views(robot_id: int, cfg, data: Path, folder, replay: float | None, live: list[str]):
+    """(stream source or None, the views to start with, the views of the keyframe summary or None).
+
+    Images only: SfM on the full-size images (cached); a bag: its keyframes (cached); then
+    downscaled. A stream: its first keyframes make the box and the summary."""
+    from cli.options import progress_listener
+    from cli.view_source import start_stream
+
+    if replay is not None or live:
+        return start_stream(cfg, data, folder.keyframe_cache, replay, live, lambda t: _log(f"[robot {robot_id}] {t}"))
+    with progress_listener():
+        views = folder.load_views(data, cfg.training.image_width, sfm=cfg.sfm, ros=cfg.data.ros)
+        summary_views = None  # the keyframe summary's features come from the sharper images when there are any
+        if cfg.daemon.initial_pose == "coarse" and cfg.daemon.summary_width != cfg.training.image_width:
+            full = folder.load_views(data, cfg.daemon.summary_width, sfm=cfg.sfm, ros=cfg.data.ros)
+            summary_views = full if full.width != views.width else None
+    return None, views, summary_views
+
+
+def _run_daemon(robot_id: int, cfg, transport_cfg, views, summary_views, box, run_dir: Path, source) -> None:
+    """Open the session, run the daemon to its last round; Ctrl-C / SIGTERM exit 130 / 143."""
+    from agent.daemon import Daemon
+    from protocol.keys import Keys
+    from protocol.transport import TransportError, ZenohTransport
 
     try:
         transport = ZenohTransport(transport_cfg, Keys(cfg.swarm.name), robot_id).open()
     except TransportError as e:
-        if source is not None:
-            source.close()
         raise UserError(f"cannot open the Zenoh session: {e}") from None
     daemon = None
     stopped_by: list[int] = []
@@ -121,8 +145,6 @@ def up(
         raise UserError(str(e)) from None
     finally:
         transport.close()
-        if source is not None:
-            source.close()
     sys.stdout.flush()
     if stopped_by:
         _log(f"[robot {robot_id}] stopped by {signal.Signals(stopped_by[0]).name}: the checkpoint of the last "

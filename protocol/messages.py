@@ -470,23 +470,25 @@ def check_status_body(body: Any) -> dict[str, Any]:
         if v is None or v < 0:
             raise bad(name, "expected a non-negative number")
         out[name] = v
-    ages = body["alive_ages"]
+    out["alive_ages"], out["suspects"] = _check_peers(body["alive_ages"], body["suspects"], bad)
+    out["views"] = _check_views(body["views"], bad)
+    return out
+
+
+def _check_peers(ages: Any, suspects: Any, bad: Callable[[str, str], Rejected]) -> tuple[dict, dict]:
+    """Status.alive_ages and Status.suspects: what a robot says about the others."""
     if not isinstance(ages, list) or not all(
         isinstance(p, list) and len(p) == 2 and is_int(p[0]) and 0 <= p[0] <= MAX_ROUND and is_number(p[1])
         and math.isfinite(p[1]) and p[1] >= 0
         for p in ages
     ):
         raise bad("alive_ages", "expected a list of [robot id, non-negative age in seconds]")
-    out["alive_ages"] = {int(i): float(a) for i, a in ages}
-    suspects = body["suspects"]
     if not isinstance(suspects, list) or len(suspects) > 1024 or not all(
         isinstance(p, list) and len(p) == 2 and is_int(p[0]) and 0 <= p[0] <= MAX_ROUND and p[1] in SUSPICIONS
         for p in suspects
     ):
         raise bad("suspects", f"expected a list of [robot id, one of {list(SUSPICIONS)}]")
-    out["suspects"] = {int(i): str(why) for i, why in suspects}
-    out["views"] = _check_views(body["views"], bad)
-    return out
+    return {int(i): float(a) for i, a in ages}, {int(i): str(why) for i, why in suspects}
 
 
 def _check_views(views: Any, bad: Callable[[str, str], Rejected]) -> dict | None:
