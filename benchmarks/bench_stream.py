@@ -165,7 +165,7 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def sampling(rounds: int, steps: int, views_n: int, width: int) -> None:
+def sampling(rounds: int, steps: int, views_n: int, width: int, overrides: list[str]) -> None:
     import torch
 
     from agent.data.loaders import load_views
@@ -182,7 +182,7 @@ def sampling(rounds: int, steps: int, views_n: int, width: int) -> None:
     train_views, test = own_holdout_split(views, 8)
     centre, half, _ = estimate_scene_box(views, True, cameras_elsewhere=True)
     box = box_from_center(centre, half)  # from config: the box is not what is compared here
-    tcfg = load_train_config(None, [], rounds * steps, capture=Capture(unbounded=True, width=width))
+    tcfg = load_train_config(None, overrides, rounds * steps, capture=Capture(unbounded=True, width=width))
     training = SwarmTrainingConfig(rounds=rounds, steps_per_round=steps, own_holdout_every=0, train=tcfg)
     per_round = -(-len(train_views) // rounds)
     n_test_recent = max(1, len(test) // rounds)
@@ -242,9 +242,11 @@ def main() -> None:
     p.add_argument("--sampling", action="store_true", help="only the sampling comparison (recency, uniform, offline)")
     p.add_argument("--rounds", type=int, default=8)
     p.add_argument("--steps", type=int, default=50)
+    p.add_argument("--set", action="append", default=[], help="--sampling: a TrainConfig setting, e.g. "
+                   "occupancy.warmup_steps=100000 (the grid never prunes)")
     a = p.parse_args()
     if a.sampling:
-        sampling(a.rounds, a.steps, 64, 48)
+        sampling(a.rounds, a.steps, 64, 48, a.set)
         return
     if a.child:
         n, mode = a.child.split(":")
