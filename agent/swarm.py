@@ -162,7 +162,9 @@ class Simulation:
         initial_poses: Mapping[int, Tensor] | None = None,
         reference_id: int | None = None,
         wire: Callable[[int, int, Mapping[str, Tensor]], dict[str, Tensor]] | None = None,
+        streams: Mapping[int, ViewStream] | None = None,
     ) -> None:
+        """streams: robots whose views grow while they train (``robots[i]`` its first keyframes)."""
         self.cfg = cfg
         self.wire = wire
         # With a lossy wire, C-ADMM runs on what both ends of an edge hold: each robot's own
@@ -176,7 +178,8 @@ class Simulation:
         self.reference_id = min(robots) if reference_id is None else reference_id
         initial_poses = initial_poses or {}
         self.robots = {
-            i: build_robot(i, v, box_from_shared, cfg, initial_poses.get(i), is_reference=(i == self.reference_id))
+            i: build_robot(i, v, box_from_shared, cfg, initial_poses.get(i), is_reference=(i == self.reference_id),
+                           stream=(streams or {}).get(i))
             for i, v in sorted(robots.items())
         }
         self.thetas = {i: r.trainer.theta() for i, r in self.robots.items()}  # theta^0

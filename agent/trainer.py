@@ -387,7 +387,7 @@ class RobotTrainer:
         self.intrinsics[index] = intrinsics.to(self.device).float()
         c2w_box = self.box_from_shared @ transform_c2w(self.pose.matrix(), self.c2w_local[index:index + 1])[0]
         return self.grid.open_frustum(c2w_box, self.intrinsics[index], width, height, bool(self.cfg.field.unbounded),
-                                      mark_only=self.step == 0)
+                                      step=self.step, mark_only=self.step == 0)
 
     def train_step(self) -> dict[str, float]:
         cfg = self.cfg

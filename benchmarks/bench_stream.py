@@ -11,7 +11,7 @@
    step: up to one step later).
 2. Memory. One process per size: N keyframes (160x120) admitted into a view stream while a small
    trainer trains, against the same N views held in memory as a loaded folder is. Peak RSS.
-3. Sampling on a growing set (``--sampling``): the procedural room's views arrive in capture
+3. Sampling on a growing set (``--sampling``): the procedural object's views arrive in capture
    order, a few per round, while one robot trains; ``recency`` against ``uniform`` at the same
    steps and seed, and all views given at start (offline). PSNR on every held-out view at the
    end, and after each round on the held-out views of the places seen last.

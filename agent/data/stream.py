@@ -18,7 +18,7 @@ Zenoh). :class:`ViewStream` owns them:
 - **Sampling** (:meth:`sample`, the trainer's pixel source): ``recency`` draws a
   ``recent_fraction`` of each step's rays from the newest keyframes and the rest uniformly over
   the working set, meant to learn new places fast without forgetting old ones; ``uniform`` (the
-  default: recency lost to it in the one run measured) draws every ray alike.
+  default: recency was below it in both runs measured) draws every ray alike.
 - **The field box** is fixed before the first step (it is part of the model's signature): from
   the first keyframes, or from the scene file. A robot that drives out of it still trains: an
   unbounded field squeezes the outside into its shell (coarser there, ~|x|^2 per cell); a
@@ -58,7 +58,7 @@ class StreamConfig:
     capacity: int = 0  # training keyframes the trainer holds state for; 0: data.ros.keyframes.max_keyframes
     start_keyframes: int = 3  # the first round waits for this many keyframes (the box and summary come from them)
     start_timeout_s: float = 300.0  # ... at most this long
-    sampling: Literal["recency", "uniform"] = "uniform"  # recency lost to uniform in the one run measured (results.md)
+    sampling: Literal["recency", "uniform"] = "uniform"  # recency was below uniform in both runs measured (results.md)
     recent_keyframes: int = 8  # the newest this many keyframes ...
     recent_fraction: float = 0.5  # ... get this fraction of each step's rays (recency)
     working_set: int = 64  # keyframes held in memory at the training width

@@ -43,6 +43,7 @@ class OccupancyGrid:
         grid = torch.stack(torch.meshgrid(ii, ii, ii, indexing="ij"), -1).reshape(-1, 3)  # [C, 3] (x, y, z)
         self._cell_xyz = grid.to(torch.int32)
         self.seen = torch.zeros(r**3, dtype=torch.bool, device=self.device)  # [C] in some admitted camera's view
+        self.open_until = torch.zeros(r**3, dtype=torch.long, device=self.device)  # [C] held open before this step
 
     # --- queries -------------------------------------------------------------------------
     def cell_index(self, x: Tensor) -> Tensor:
@@ -76,19 +77,21 @@ class OccupancyGrid:
         if step < self.cfg.warmup_steps:
             index = torch.arange(cells, device=self.device)
         else:
+            judged = (self.open_until > step - self.cfg.update_every).nonzero().squeeze(-1)  # held, or just let go
             uniform = torch.randint(0, cells, (cells // 4,), generator=generator, device=self.device)
             occupied = self.occupied.nonzero().squeeze(-1)
             if occupied.numel():
                 pick = torch.randint(0, occupied.numel(), (max(occupied.numel() // 4, 1),), generator=generator,
                                      device=self.device)
-                index = torch.cat([uniform, occupied[pick]])
+                index = torch.cat([uniform, occupied[pick], judged])
             else:
-                index = uniform
+                index = torch.cat([uniform, judged])
         jitter = torch.rand(index.numel(), 3, generator=generator, device=self.device)
         x = (self._cell_xyz[index].float() + jitter) * (2.0 / self.cfg.resolution) - 1  # [N, 3]
         sigma = torch.cat([density_fn(chunk) for chunk in x.split(65536)])
         self.density[index] = torch.maximum(self.density[index] * self.cfg.decay, sigma)
-        seen = self.density >= 0
+        held = self.open_until > step  # opened for a new camera: not judged yet, not in the mean
+        seen = (self.density >= 0) & ~held
         mean = self.density[seen].mean() if seen.any() else torch.tensor(0.0)
         threshold = min(float(mean), self.cfg.density_threshold)
         occupied = self.density > threshold
@@ -96,20 +99,23 @@ class OccupancyGrid:
             # A uniform field has no cell above its own mean (float round-off decides): keep its
             # densest cells rather than prune everything, which no gradient could ever undo.
             occupied = self.density >= self.density.max()
-        self.occupied = occupied
+        self.occupied = occupied | held
 
     @torch.no_grad()
     def open_frustum(self, c2w_box: Tensor, intrinsics: Tensor, width: int, height: int, unbounded: bool,
-                     mark_only: bool = False) -> int:
+                     step: int = 0, mark_only: bool = False) -> int:
         """Open the cells a new camera is the first to see (``c2w_box`` [4, 4] in box coordinates,
         OpenGL; ``intrinsics`` [4]); returns how many were closed before.
 
         A keyframe that arrives while the robot trains may look at space the grid pruned because no
         keyframe had trained it yet: marching would skip it and the field could never learn it.
         Only cells no earlier camera saw are opened (re-opening what the field has trained kept the
-        whole grid open in a room, where every camera sees most of it; streamed training stalled
-        then, 7.7 dB against 20.7 offline, benchmarks/bench_stream.py --sampling), with a density
-        just above the threshold, so they stay open until the update visits them again.
+        whole grid open in a room, where every camera sees most of it). They are held open for
+        ``warmup_steps`` steps from ``step``, the new camera's own warm-up, out of the mean that sets
+        the threshold, and their running max starts again from the field's density there. (Opened
+        instead with a forced density just above the threshold, they raised the mean until it
+        pruned the field's own faint cells and then held themselves open: streamed training stalled
+        near 10 dB where offline reached 20, benchmarks/bench_stream.py --sampling.)
         ``mark_only``: only remember the cells as seen (the first keyframes, before the warm-up)."""
         r = self.cfg.resolution
         x = (self._cell_xyz.float() + 0.5) * (2.0 / r) - 1  # [C, 3] grid coordinates
@@ -128,7 +134,8 @@ class OccupancyGrid:
         if mark_only:
             return 0
         opened = int((new & ~self.occupied).sum())
-        self.density[new] = self.density[new].clamp(min=1.05 * self.cfg.density_threshold)
+        self.density[new] = -1.0  # never judged: the next update takes the field's density as it is
+        self.open_until[new] = step + self.cfg.warmup_steps
         self.occupied |= new
         return opened
 
