@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from agent.align import AlignConfig, Summary, estimate_relative, summarise
+from agent.data.stream import ViewStream
 from agent.data.views import Views
 from agent.geometry import pose_summary, sim3_from_params
 from agent.telemetry import Reporter, StatusBoard
@@ -69,10 +70,11 @@ class Bootstrap:
         self._on_box = on_box  # the daemon rebuilds its model spec from the new box
         self._peer_expect = codec.Expectation(swarm=keys.swarm, allowed_senders=frozenset(membership.topology.ids),
                                               max_keyframe_bytes=_keyframe_cap(align))
-        self._summaries: dict[int, Summary] = {}  # neighbours' keyframe summaries, fetched once each
+        self._summaries: dict[int, Summary] = {}  # neighbours' keyframe summaries, fetched again on a retry
         self._boxes: dict[int, np.ndarray | None] = {}  # the field box each neighbour sent
         self._own: Summary | None = None
         self._serve: Callable[[], int] | None = None  # re-serves our summary (with the box, once known)
+        self._msg: KeyframeSummary | None = None  # what _serve sends
         self._summary_width = summary_views.width  # the width our summary's images had
 
     # ------------------------------------------------------------------ the field box
@@ -123,15 +125,31 @@ class Bootstrap:
             return len(data)
 
         size = serve()
-        self._own, self._serve = own, serve
+        self._own, self._serve, self._msg = own, serve, msg
         self.report.event("keyframes", bytes=size, image_bytes=msg.image_bytes, points=len(own),
-                          image_width=views.width, seconds=time.monotonic() - t0)
+                          image_width=views.width, views=len(views), seconds=time.monotonic() - t0)
         self.report.say(f"keyframe summary: {len(own)} points, {size / 1e3:.0f} kB "
                         f"(its images: {msg.image_bytes / 1e6:.1f} MB)")
         if is_reference:
             self.board.set(alignment=Alignment.REFERENCE, alignment_detail="")
             return
         self._align_with_neighbours(own, serve, t0)
+
+    def refresh_summary(self, stream: ViewStream) -> int:
+        """Serve a summary of all the stream's training keyframes so far (its neighbours place
+        themselves against the places it has seen since, on their next query). -> points."""
+        if self._msg is None or self._serve is None:
+            return 0  # the coarse step has not run yet: it summarises what there is then
+        views = stream.initial_views(self._summary_width)
+        own = summarise(views, cfg=self.align)
+        m = self._msg
+        m.descriptors, m.points, m.keyframe_index = own.descriptors, own.points, own.keyframe_index
+        m.keypoints, m.keyframe_cameras, m.image_bytes = own.keypoints, own.keyframe_cameras, int(views.images.numel())
+        self._own = own
+        size = self._serve()
+        self.report.event("keyframes", bytes=size, image_bytes=m.image_bytes, points=len(own), image_width=views.width,
+                          views=len(views), refreshed=True)
+        return len(own)
 
     def retry(self, from_field: bool) -> bool:
         """One more attempt of an unaligned robot: with every neighbour (some may have aligned
@@ -140,6 +158,7 @@ class Bootstrap:
         if self._own is None or self._serve is None or self.box_pending:
             return False
         own = self._field_summary() if from_field else self._own
+        self._summaries.clear()  # a neighbour whose keyframes grow serves more of them now
         tried: dict[int, str] = {}
         best = self._best_match(own, self.board.peers(), self._summaries, self._boxes, tried)
         if best is None:

@@ -184,6 +184,7 @@ class Daemon:
         elif (mismatch := field_box_mismatch(views, training.train.field.unbounded)) is not None:
             self.report.warn(mismatch)  # the split sized the box for the field the images call for
         self.setup = build_robot(robot_id, views, box_from_shared, training, initial_pose, stream=stream)
+        self._summarised = len(views)  # training keyframes in the keyframe summary served
         self.trainer = self.setup.trainer
         self.mailbox: Mailbox[ThetaSnapshot] = Mailbox(max_ahead=cfg.max_ahead, last_round=training.rounds)
         self.pace = ClaimPace()
@@ -265,13 +266,23 @@ class Daemon:
         n = self.cfg.realign_every
         if n <= 0 or self.round % n:
             return
-        if not self.bootstrap.retry(from_field=self.round >= self.cfg.realign_from_field_after):
+        from_field = self.round >= self.cfg.realign_from_field_after and self.setup.stream is None  # renders: fixed views
+        if not self.bootstrap.retry(from_field=from_field):
             return
         if heard:
             self.rejoin.adopt(heard, reset_duals=True)
         self.trainer.reset_occupancy()
         self.report.event("entered_consensus", neighbours=sorted(heard))
         self.report.say(f"aligned at round {self.round}: taking the neighbours' model {sorted(heard)}, in consensus now")
+
+    def _grow_summary(self) -> None:
+        """A stream's keyframe summary follows its keyframes, every ``realign_every`` rounds: an
+        unaligned robot retries with its new places, an aligned one serves them to those still unplaced."""
+        stream, n = self.setup.stream, self.cfg.realign_every
+        if stream is None or n <= 0 or self.round % n or stream.training_keyframes == self._summarised:
+            return
+        self._summarised = stream.training_keyframes
+        self.bootstrap.refresh_summary(stream)
 
     def _heard_status(self, status: Status) -> None:
         """A neighbour's heartbeat; one claiming a newer round may vouch for a snapshot the barrier holds."""
@@ -446,6 +457,7 @@ class Daemon:
         self.pace.min_round_s = min(self._recent_round_s) / self.cfg.pace_margin
         heard = self._catch_up(heard)
         self.mailbox.advance(self.round)  # slide the window: keeps accepting up to round + max_ahead
+        self._grow_summary()
         if not aligned:
             self._maybe_realign(heard)
         self._last_heard = heard

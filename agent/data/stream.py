@@ -244,6 +244,10 @@ class ViewStream:
         return torch.tensor(frame["transform_matrix"], dtype=torch.float32), k
 
     @property
+    def training_keyframes(self) -> int:
+        return len(self._rows)
+
+    @property
     def size(self) -> tuple[int, int]:
         if self._size is None:
             cam = self.store.camera

@@ -178,3 +178,44 @@ def simulate(swarm: Swarm, overrides: list[str] = (), compression=None, robots: 
     sim.wire = wire if forge is None else (lambda i, k, theta: forge(i, k, wire(i, k, theta)))
     sim.run()
     return sim
+
+
+# --- the README's own commands, run verbatim (tests/system/test_readme_*.py) ----------------------
+def readme_commands(heading: str) -> list[str]:
+    """The ``dinerf-agent`` lines of the first bash block under the README's ``## heading``, in order
+    (trailing ``  # comments`` dropped)."""
+    import re
+
+    text = (REPO / "README.md").read_text()
+    block = re.search(rf"## {re.escape(heading)}.*?```bash\n(.*?)```", text, re.S)
+    assert block, f"README has no bash block under '## {heading}'"
+    return [line.split("  #")[0].strip() for line in block[1].splitlines() if line.strip().startswith("dinerf-agent ")]
+
+
+def readme_env() -> dict[str, str]:
+    return dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1", COLUMNS="250")
+
+
+def run_robots(argvs: dict[int, list[str]], cwd: Path, env: dict[str, str], timeout: float = 600,
+               while_running=None) -> tuple[dict[int, int], dict[int, str]]:
+    """One process per robot, each logging to ``cwd/robot<i>.log``; ``while_running()`` is called
+    until they all end. -> (exit codes, logs). Whatever still runs at the end is killed."""
+    logs = {i: open(cwd / f"robot{i}.log", "w") for i in argvs}
+    procs = {i: subprocess.Popen(a, cwd=cwd, env=env, stdout=logs[i], stderr=subprocess.STDOUT)
+             for i, a in argvs.items()}
+    deadline = time.monotonic() + timeout
+    try:
+        while any(p.poll() is None for p in procs.values()) and time.monotonic() < deadline:
+            if while_running is not None:
+                while_running()
+            else:
+                time.sleep(1)
+        codes = {i: p.poll() for i, p in procs.items()}
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        for f in logs.values():
+            f.close()
+    return codes, {i: (cwd / f"robot{i}.log").read_text() for i in procs}

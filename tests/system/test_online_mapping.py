@@ -18,7 +18,7 @@ import pytest
 
 from agent.data.loaders import load_views
 from agent.data.ros.record import RecordConfig, bag_storage_file, record_bag
-from agent.telemetry import read_telemetry
+from agent.telemetry import read_events, read_telemetry
 
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.slow
@@ -58,6 +58,9 @@ def test_a_replayed_bag_grows_the_views_while_the_robot_trains_and_a_restart_kee
     assert len(frames) - held == counts[-1] and held == len(frames) // 4
     # every training keyframe is counted once (round 1's count includes those it started from)
     assert sum(r.keyframes_admitted for r in records) == counts[-1]
+    # the keyframe summary it serves grows with them (every realign_every = 2 rounds), for robots still unplaced
+    served = [e for e in read_events(run / "events.jsonl") if e["event"] == "keyframes"]
+    assert len(served) >= 2 and served[-1].get("refreshed") and served[-1]["views"] > served[0]["views"], served
     code, log = _up(tmp_path, env, "--set", "training.rounds=6")
     assert code == 0, log
     assert "resumed" in log and read_telemetry(run / "telemetry.jsonl")[-1].round == 6

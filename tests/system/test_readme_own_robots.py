@@ -10,8 +10,6 @@ be within 2 deg of the offsets applied here, and `eval` must score without any t
 
 from __future__ import annotations
 
-import os
-import re
 import shlex
 import subprocess
 import sys
@@ -25,20 +23,13 @@ from agent.data.ros.record import RecordConfig, bag_storage_file, record_bag
 from agent.data.split import SplitConfig, split_dataset
 from agent.geometry import pose_error, random_rotation
 from agent.telemetry import read_telemetry
+from tests.system.harness import readme_commands, readme_env, run_robots
 
-REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.slow
 SMALL = ["--set", "training.train.rays_per_step=512", "--set", "training.train.field.grid.log2_hashmap_size=12",
          "--set", "training.train.field.grid.num_levels=8", "--set", "training.train.field.density_hidden=32",
          "--set", "training.train.field.color_hidden=32", "--set", "training.train.occupancy.resolution=32",
          "--set", "training.own_holdout_every=4", "--set", "training.image_width=32"]
-
-
-def readme_block() -> list[str]:
-    text = (REPO / "README.md").read_text()
-    block = re.search(r"## Your own robots.*?```bash\n(.*?)```", text, re.S)
-    assert block, "README has no bash block under '## Your own robots'"
-    return [line.split("  #")[0].strip() for line in block[1].splitlines() if line.startswith("dinerf-agent ")]
 
 
 def record(tmp: Path) -> dict[int, np.ndarray]:
@@ -58,11 +49,11 @@ def record(tmp: Path) -> dict[int, np.ndarray]:
 
 
 def test_the_readme_own_robots_from_bags_to_a_score_without_truth(tmp_path):
-    commands = readme_block()
+    commands = readme_commands("Your own robots")
     kinds = [shlex.split(c)[1] for c in commands]
     assert kinds == ["init", "inspect", "up", "up", "eval"], kinds
     offsets = record(tmp_path)
-    env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1", COLUMNS="250")
+    env = readme_env()
 
     def argv(command: str) -> list[str]:
         args = shlex.split(command)[1:]
@@ -76,18 +67,7 @@ def test_the_readme_own_robots_from_bags_to_a_score_without_truth(tmp_path):
     assert "--tls myswarm/robot1/tls" in out.stdout or "robot 1" in out.stdout
     out = subprocess.run(argv(inspect), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and "odom -> base_link -> camera_optical" in out.stdout, out.stdout + out.stderr
-    logs = {i: open(tmp_path / f"robot{i}.log", "w") for i in (1, 2)}
-    procs = {i: subprocess.Popen(argv(c), cwd=tmp_path, env=env, stdout=logs[i], stderr=subprocess.STDOUT)
-             for i, c in zip((1, 2), ups)}
-    try:
-        codes = {i: p.wait(timeout=300) for i, p in procs.items()}
-    finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.kill()
-        for f in logs.values():
-            f.close()
-    text = {i: (tmp_path / f"robot{i}.log").read_text() for i in procs}
+    codes, text = run_robots({i: argv(c) for i, c in zip((1, 2), ups)}, tmp_path, env, timeout=300)
     assert codes == {1: 0, 2: 0}, text
     runs = tmp_path / "runs" / "myswarm"
     for i in (1, 2):

@@ -8,13 +8,10 @@ in its log and in `status`; every robot that is in consensus ends within 1 deg o
 from __future__ import annotations
 
 import json
-import os
-import re
 import shlex
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import pytest
 import torch
@@ -23,18 +20,9 @@ from agent.checkpoint import RunFolder
 from agent.data.folder import read_truth
 from agent.geometry import pose_error
 from agent.telemetry import read_telemetry
+from tests.system.harness import readme_commands, readme_env, run_robots
 
-REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.slow
-
-
-def readme_commands() -> list[str]:
-    """The commands of the README's by-hand block, in order (comments and `. .venv/...` left out)."""
-    text = (REPO / "README.md").read_text()
-    block = re.search(r"## A swarm by hand\s+```bash\n(.*?)```", text, re.S)
-    assert block, "README has no '## A swarm by hand' bash block"
-    return [line.strip() for line in block[1].splitlines()
-            if line.strip().startswith("dinerf-agent ")]
 
 
 def _argv(command: str) -> list[str]:
@@ -42,32 +30,24 @@ def _argv(command: str) -> list[str]:
 
 
 def test_the_readme_swarm_by_hand_ends_aligned_or_names_the_unaligned_robot(tmp_path):
-    commands = readme_commands()
+    commands = readme_commands("A swarm by hand")
     split, ups = commands[0], [c for c in commands if " up " in f" {c} "]
     status = next(c for c in commands if c.startswith("dinerf-agent status"))
     assert split.startswith("dinerf-agent split") and len(ups) == 3 and status.startswith("dinerf-agent status")
-    env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1", COLUMNS="250")
+    env = readme_env()
     done = subprocess.run(_argv(split), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
-    logs = {i: open(tmp_path / f"robot{i}.log", "w") for i in (1, 2, 3)}
-    procs = {i: subprocess.Popen(_argv(c), cwd=tmp_path, env=env, stdout=logs[i], stderr=subprocess.STDOUT)
-             for i, c in zip((1, 2, 3), ups)}
     seen_status = []
-    try:
-        while any(p.poll() is None for p in procs.values()):
-            out = subprocess.run(_argv(status) + ["--json", "--once", "2"], cwd=tmp_path, env=env,
-                                 capture_output=True, text=True, timeout=60)
-            if out.returncode == 0 and out.stdout.strip():
-                seen_status.append(json.loads(out.stdout))
-            time.sleep(30)  # each status call is a process of its own: keep the cores for the robots
-        codes = {i: p.wait() for i, p in procs.items()}
-    finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.kill()
-        for f in logs.values():
-            f.close()
-    text = {i: (tmp_path / f"robot{i}.log").read_text() for i in procs}
+
+    def poll_status() -> None:
+        out = subprocess.run(_argv(status) + ["--json", "--once", "2"], cwd=tmp_path, env=env,
+                             capture_output=True, text=True, timeout=60)
+        if out.returncode == 0 and out.stdout.strip():
+            seen_status.append(json.loads(out.stdout))
+        time.sleep(30)  # each status call is a process of its own: keep the cores for the robots
+
+    codes, text = run_robots({i: _argv(c) for i, c in zip((1, 2, 3), ups)}, tmp_path, env, timeout=1500,
+                             while_running=poll_status)
     assert codes == {1: 0, 2: 0, 3: 0}, text
     name = tmp_path / "swarm1"
     truth = read_truth(name)["robots"]
