@@ -103,8 +103,6 @@ def _load_views(robot_id: int, cfg, data: Path, folder, replay: float | None, li
 
     if replay is not None or live:
         started = start_stream(cfg, data, folder.keyframe_cache, replay, live, lambda t: _log(f"[robot {robot_id}] {t}"))
-        LOGGER.warning(f"[robot {robot_id}] views that arrive while training do not yet make maps as good as "
-                       "the same views given at start (docs/results.md, online mapping): record, then run offline")
         return started
     with progress_listener():
         views = folder.load_views(data, cfg.training.image_width, sfm=cfg.sfm, ros=cfg.data.ros)
