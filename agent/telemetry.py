@@ -116,9 +116,14 @@ class RoundRecord:
         if self.keyframes is None:
             return ""
         age = "-" if self.keyframe_age_s is None else f"{self.keyframe_age_s:.1f} s"
-        area = " x ".join(f"{x:.2f}" for x in self.coverage) if self.coverage else "-"
+        area = coverage_text(self.coverage, digits=2)
         return (f" | keyframes {self.keyframes} (+{self.keyframes_admitted}, held out +{self.keyframes_held_out}, "
                 f"dropped +{self.keyframes_dropped}) newest {age} ago, area {area}")
+
+
+def coverage_text(extent: list[float] | None, digits: int = 1) -> str:
+    """The area a stream's cameras cover (extent per axis), for log lines and ``status``."""
+    return "-" if not extent else " x ".join(f"{x:.{digits}f}" for x in extent)
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
+from agent.telemetry import coverage_text
 from cli.errors import UserError, friendly_errors
 from cli.main import app
 
@@ -66,8 +67,8 @@ def _views(msg) -> str:
     if v is None:
         return "-"
     age = "-" if v["newest_age_s"] is None else f"{v['newest_age_s']:.1f} s"
-    area = " x ".join(f"{x:.1f}" for x in v["coverage"]) if v["coverage"] else "-"
-    return f"{v['keyframes']} (+{v['held_out']} held, {v['dropped']} dropped), newest {age}, area {area}"
+    return (f"{v['keyframes']} (+{v['held_out']} held, {v['dropped']} dropped), newest {age}, "
+            f"area {coverage_text(v['coverage'])}")
 
 
 def _suspects(msg) -> str:

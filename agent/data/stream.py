@@ -357,7 +357,3 @@ class ViewStream:
                 f"sampling {self.cfg.sampling}" + (f" ({self.cfg.recent_fraction:.0%} of rays on the newest "
                                                    f"{self.cfg.recent_keyframes})" if self.cfg.sampling == "recency"
                                                    else ""))
-
-
-def coverage_text(extent: list[float] | None) -> str:
-    return "-" if not extent else " x ".join(f"{x:.1f}" for x in extent)
