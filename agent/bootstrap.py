@@ -73,8 +73,7 @@ class Bootstrap:
         self._summaries: dict[int, Summary] = {}  # neighbours' keyframe summaries, fetched again on a retry
         self._boxes: dict[int, np.ndarray | None] = {}  # the field box each neighbour sent
         self._own: Summary | None = None
-        self._serve: Callable[[], int] | None = None  # re-serves our summary (with the box, once known)
-        self._msg: KeyframeSummary | None = None  # what _serve sends
+        self._msg: KeyframeSummary | None = None  # what we serve (set by the coarse step)
         self._summary_width = summary_views.width  # the width our summary's images had
 
     # ------------------------------------------------------------------ the field box
@@ -109,23 +108,14 @@ class Bootstrap:
         """Initial T_i from keyframe summaries, propagated outward from the reference (module docstring)."""
         t0 = time.monotonic()
         views, self.summary_views = self.summary_views, self.trainer.views  # the sharper copy is needed once
-        own = summarise(views, cfg=self.align)
-        msg = KeyframeSummary(swarm=self.keys.swarm, sender=self.membership.self_id, round=0,
-                              epoch=self.membership.epoch, descriptors=own.descriptors, points=own.points,
-                              keyframe_index=own.keyframe_index, image_bytes=int(views.images.numel()),
-                              keypoints=own.keypoints, keyframe_cameras=own.keyframe_cameras)
+        own, msg = self._summarise(views)
         is_reference = self.membership.is_reference
         if is_reference and self.box_pending:  # our own frame is the shared frame: our box is the box
             self.adopt_box(self._box_to_share(), "our own views (we are the reference)")
 
-        def serve() -> int:
-            msg.box_from_shared = None if self.box_pending else self._box_to_share()
-            data = codec.encode(msg)
-            self.net.set_keyframes(data)
-            return len(data)
-
+        self._own, self._msg = own, msg
+        serve = self._serve_summary
         size = serve()
-        self._own, self._serve, self._msg = own, serve, msg
         self.report.event("keyframes", bytes=size, image_bytes=msg.image_bytes, points=len(own),
                           image_width=views.width, views=len(views), seconds=time.monotonic() - t0)
         self.report.say(f"keyframe summary: {len(own)} points, {size / 1e3:.0f} kB "
@@ -135,27 +125,37 @@ class Bootstrap:
             return
         self._align_with_neighbours(own, serve, t0)
 
+    def _summarise(self, views: Views) -> tuple[Summary, KeyframeSummary]:
+        own = summarise(views, cfg=self.align)
+        return own, KeyframeSummary(swarm=self.keys.swarm, sender=self.membership.self_id, round=0,
+                                    epoch=self.membership.epoch, descriptors=own.descriptors, points=own.points,
+                                    keyframe_index=own.keyframe_index, image_bytes=int(views.images.numel()),
+                                    keypoints=own.keypoints, keyframe_cameras=own.keyframe_cameras)
+
+    def _serve_summary(self) -> int:
+        """(Re)serve our summary, with the box once known; -> bytes."""
+        self._msg.box_from_shared = None if self.box_pending else self._box_to_share()
+        data = codec.encode(self._msg)
+        self.net.set_keyframes(data)
+        return len(data)
+
     def refresh_summary(self, stream: ViewStream) -> int:
         """Serve a summary of all the stream's training keyframes so far (its neighbours place
         themselves against the places it has seen since, on their next query). -> points."""
-        if self._msg is None or self._serve is None:
+        if self._msg is None:
             return 0  # the coarse step has not run yet: it summarises what there is then
         views = stream.initial_views(self._summary_width)
-        own = summarise(views, cfg=self.align)
-        m = self._msg
-        m.descriptors, m.points, m.keyframe_index = own.descriptors, own.points, own.keyframe_index
-        m.keypoints, m.keyframe_cameras, m.image_bytes = own.keypoints, own.keyframe_cameras, int(views.images.numel())
-        self._own = own
-        size = self._serve()
-        self.report.event("keyframes", bytes=size, image_bytes=m.image_bytes, points=len(own), image_width=views.width,
-                          views=len(views), refreshed=True)
-        return len(own)
+        self._own, self._msg = self._summarise(views)
+        size = self._serve_summary()
+        self.report.event("keyframes", bytes=size, image_bytes=self._msg.image_bytes, points=len(self._own),
+                          image_width=views.width, views=len(views), refreshed=True)
+        return len(self._own)
 
     def retry(self, from_field: bool) -> bool:
         """One more attempt of an unaligned robot: with every neighbour (some may have aligned
         since), from our summary or, ``from_field``, from one of renders of our own trained field
         (its depth places every feature, where our images alone could triangulate too few)."""
-        if self._own is None or self._serve is None or self.box_pending:
+        if self._own is None or self._msg is None or self.box_pending:
             return False
         own = self._field_summary() if from_field else self._own
         self._summaries.clear()  # a neighbour whose keyframes grow serves more of them now
@@ -165,7 +165,7 @@ class Bootstrap:
             self.board.set(alignment_detail=f"retrying ({'own field' if from_field else 'summaries'}): "
                                             + "; ".join(f"{j}: {r}" for j, r in sorted(tried.items()))[:200])
             return False
-        self._start_from(best, self._boxes, self._serve, time.monotonic(),
+        self._start_from(best, self._boxes, self._serve_summary, time.monotonic(),
                          how=" from renders of its own field" if from_field else " on a retry")
         return True
 
