@@ -401,7 +401,7 @@ class Daemon:
                 self.round = move.to_round
                 self._moves.append(move.record())
             self._apply_reference()
-            self.vigilance.armed = True
+            self.vigilance.arm()
             self.report.event("start", resumed=resumed, alive=sorted(self.membership.alive),
                               reference=self.membership.reference)
             self.rounds_report.start()

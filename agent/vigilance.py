@@ -27,12 +27,22 @@ class Vigilance:
         self.report, self.pace, self.refusals, self.clipper = report, pace, refusals, clipper
         self._lock = threading.Lock()
         self._ahead: set[int] = set()
-        self.armed = False  # set once the robot has joined: claims ahead of it are suspicious from then on
+        self.armed = False  # set by arm() once the robot has joined: claims ahead of it are suspicious from then on
+
+    def arm(self) -> None:
+        """The robot has joined: from now on a claim ahead of its pace is suspicious, starting with
+        those already heard (a neighbour that claimed too much before the join is named now, not
+        at its next heartbeat, which may come when its pace explains it)."""
+        self.armed = True
+        for j, (claim, _) in sorted(self.pace.ahead_of_pace().items()):
+            self._update(j, claim, ahead=True)
 
     def heard_claim(self, j: int, claim: int, now: float, own_round: int) -> None:
         """A heartbeat of j's (from the network's thread): pace its claim, say when it outruns it
         (once armed: before the robot joined, its neighbours are ahead of it by right)."""
-        ahead = self.pace.observe(j, claim, now, own_round) and self.armed
+        self._update(j, claim, ahead=self.pace.observe(j, claim, now, own_round) and self.armed)
+
+    def _update(self, j: int, claim: int, ahead: bool) -> None:
         with self._lock:
             started, ended = ahead and j not in self._ahead, not ahead and j in self._ahead
             (self._ahead.add if ahead else self._ahead.discard)(j)

@@ -1,6 +1,8 @@
 """The laggard's choice after a cut heals or a robot was slow: train through the gap or skip it,
 to the round a quorum of its neighbours reached, never to one neighbour's claim alone."""
 
+import json
+
 from protocol.evidence import plan_catch_up, quorum_round
 
 
@@ -70,3 +72,24 @@ def test_a_neighbour_whose_snapshots_are_refused_stops_holding_the_barrier():
         reached.append(streaks.barrier_ended(k, delivered=[2], awaited=[2, 3]))
     assert reached == [[], [], [3]] and streaks.not_awaited(3, 4)  # not waited for before it sends anything
     assert streaks.barrier_ended(4, delivered=[2, 3], awaited=[2]) == [] and not streaks.not_awaited(3, 5)
+
+
+def test_a_claim_too_far_heard_before_the_join_is_named_when_the_robot_arms(tmp_path):
+    """Before the join a neighbour ahead is ahead by right, so its claim is paced but not named;
+    at the join it is named at once, whether or not it heartbeats again before its pace explains it."""
+    from agent.telemetry import EventLog, Reporter
+    from agent.vigilance import Vigilance
+    from protocol.evidence import ClaimPace, RefusalStreaks
+
+    lines: list[str] = []
+    events = EventLog(tmp_path / "events.jsonl", robot_id=1)
+    vigilance = Vigilance(Reporter(1, lines.append, events, round_of=lambda: 0), ClaimPace(), RefusalStreaks(), None)
+    vigilance.heard_claim(3, 5, now=0.0, own_round=0)
+    vigilance.heard_claim(2, 1, now=0.0, own_round=0)
+    assert vigilance.suspects() == {} and not lines
+    vigilance.arm()
+    events.close()
+    assert vigilance.suspects() == {3: "ahead_of_pace"}
+    named = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
+    assert [(e["event"], e["sender"], e["round"]) for e in named] == [("ahead_of_pace", 3, 0)]
+    assert any("robot 3 claims round 5" in line for line in lines)
