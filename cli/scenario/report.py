@@ -97,7 +97,7 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
         finally:
             parts[part] = time.monotonic() - t
 
-    scores = timed("scoring", lambda: score_run(run, opts, log))
+    scores = timed("scoring", lambda: score_run(run, opts, log, workers=spec.report.workers))
     report = _report_doc(spec, run_doc, scores, telemetry)
     if spec.training.own_holdout_every > 0:  # no truth needed: every robot on every robot's own held-out frames
         report["cross"] = timed("cross", lambda: _cross(run, spec, log))

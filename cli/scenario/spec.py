@@ -218,6 +218,7 @@ class ReportSpec:
     ssim: bool = True
     render_views: int = 3  # held-out views on the render sheet
     threads: int = 1  # torch threads for the evaluation (1 beats 2 on a busy 2-core machine)
+    workers: int = 2  # processes scoring the rounds' snapshots, one thread each (the same scores; 1 = here)
     # Also score each robot's final model with every held-out view's pose fitted to its image
     # (agent.evaluation.fit_view_pose), as pose-free NeRF is evaluated; 0 = off. For SfM frames.
     fit_heldout_poses_steps: int = 0
@@ -231,10 +232,10 @@ class ReportSpec:
     orbit_all_robots: bool = False
 
     def __post_init__(self) -> None:
-        if (self.eval_every < 1 or self.render_views < 0 or self.threads < 1 or self.fit_heldout_poses_steps < 0
-                or self.own_views_every < 0 or self.orbit_frames < 0):
-            raise ValueError("report: eval_every >= 1, render_views >= 0, threads >= 1, fit_heldout_poses_steps >= 0, "
-                             "own_views_every >= 0, orbit_frames >= 0")
+        if (self.eval_every < 1 or self.render_views < 0 or self.threads < 1 or self.workers < 1
+                or self.fit_heldout_poses_steps < 0 or self.own_views_every < 0 or self.orbit_frames < 0):
+            raise ValueError("report: eval_every >= 1, render_views >= 0, threads >= 1, workers >= 1, "
+                             "fit_heldout_poses_steps >= 0, own_views_every >= 0, orbit_frames >= 0")
 
 
 @dataclass

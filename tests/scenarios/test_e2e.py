@@ -69,6 +69,7 @@ eval_every = 0
 eval_every = 100
 render_views = 2
 ssim = false
+workers = 1
 [run]
 mode = "netns"
 timeout_s = 240
@@ -122,6 +123,23 @@ def test_fault_free_swarm_completes(fault_free):
         assert all(r.heard == r.live_neighbours for r in recs)
         assert math.isfinite(final_psnr(report, i))
     assert (out / "report.md").is_file() and (out / "convergence.png").is_file() and (out / "renders.png").is_file()
+
+
+def test_scoring_in_worker_processes_gives_the_same_scores(fault_free):
+    """The report scores the rounds in 2 processes by default: the same figures as here, to the bit."""
+    from agent.evaluation import ScoringOptions, score_run
+    from cli.scenario.report import load_run_spec, swarm_run
+
+    out, report = fault_free
+    spec = load_run_spec(out)
+    run = swarm_run(out, spec.ids)
+    opts = ScoringOptions(every=3, with_ssim=False, own_views_every=spec.report.own_views_every)
+    here, two = score_run(run, opts), score_run(run, opts, workers=2)
+    assert len(here.rounds[1]) >= 3 and sorted(two.finals) == sorted(here.finals) == spec.ids
+    for i in spec.ids:
+        assert list(two.rounds[i]) == list(here.rounds[i])
+        assert [r.to_dict() for r in two.rounds[i].values()] == [r.to_dict() for r in here.rounds[i].values()]
+    assert two.final(1).psnr == report["robots"]["1"]["final"]["psnr"]
 
 
 def test_kill_a_robot_survivors_finish(tmp_path, fault_free):
