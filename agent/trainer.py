@@ -23,7 +23,7 @@ from torch import Tensor, nn
 from agent.appearance import AppearanceConfig, ColourAffine
 from agent.consensus import Consensus, ConsensusConfig
 from agent.data.views import Views
-from agent.geometry import sim3_decompose, sim3_from_params, sim3_inverse, so3_exp, transform_c2w
+from agent.geometry import sim3_decompose, sim3_inverse, so3_exp, transform_c2w
 from agent.metrics import psnr, ssim
 from agent.nerf.field import FieldConfig, NGPField
 from agent.nerf.losses import distortion_loss

@@ -7,7 +7,6 @@ as it does over Zenoh (tests/system/test_daemon.py).
 
 from __future__ import annotations
 
-import statistics
 import threading
 
 import pytest
@@ -21,7 +20,6 @@ from agent.telemetry import read_telemetry
 from cli.config import from_dict
 from protocol.keys import Keys
 from protocol.loopback import LoopbackHub, LoopbackNetwork, key_matches
-from protocol.membership import Topology
 from tests.system.harness import make_swarm, simulate
 
 pytestmark = pytest.mark.slow
