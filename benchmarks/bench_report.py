@@ -5,7 +5,7 @@ the orbit renders ``--orbit-frames`` views per robot it shows (``cli.scenario.fi
 The baselines, which dominate the report's time, are not trained here.
 
     .venv/bin/dinerf-agent scenario run quickstart --out runs/quickstart
-    .venv/bin/python benchmarks/bench_report.py runs/quickstart --every 5,3,2,1
+    .venv/bin/python benchmarks/bench_report.py runs/quickstart --every 5,3,2,1 [--workers 1]
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ def main() -> None:
     ap.add_argument("run", type=Path, help="the output folder of a `scenario run`")
     ap.add_argument("--every", default="5,2,1", help="eval_every values to time, comma-separated")
     ap.add_argument("--orbit-frames", type=int, default=36)
+    ap.add_argument("--workers", type=int, default=2, help="scoring processes (the report's report.workers)")
     args = ap.parse_args()
 
     import torch
@@ -37,11 +38,11 @@ def main() -> None:
         t = time.monotonic()
         scores = score_run(run, ScoringOptions(every=every, with_ssim=spec.report.ssim,
                                                fit_pose_steps=spec.report.fit_heldout_poses_steps,
-                                               own_views_every=spec.report.own_views_every))
-        print(f"eval_every={every}: rounds {sorted(scores.rounds[spec.reference_id])} x {len(spec.ids)} robots "
+                                               own_views_every=spec.report.own_views_every), workers=args.workers)
+        print(f"eval_every={every}, {args.workers} workers: rounds {sorted(scores.rounds[spec.reference_id])} x {len(spec.ids)} robots "
               f"scored in {time.monotonic() - t:.1f} s", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
-        for robots in ([spec.reference_id], spec.ids):
+        for robots in ([spec.reference_id], spec.ids) if args.orbit_frames else ():
             path = Path(tmp) / "orbit.gif"
             o = write_orbit({i: scores.finals[i] for i in robots}, spec.reference_id, args.orbit_frames,
                             scores.evalset.views.width, path)
