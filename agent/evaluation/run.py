@@ -150,25 +150,35 @@ def score_run(run: SwarmRun, opts: ScoringOptions, echo: Echo = silent, workers:
          + (f" ({workers} worker processes)" if workers > 1 and len(jobs) > 1 else ""))
     for i in sorted({i for i, _, final in jobs if final and opts.fit_pose_steps}):
         echo(f"robot {i}: fitting each held-out view's pose to its image ({opts.fit_pose_steps} steps each)")
-    done: dict[tuple[int, int], tuple[RoundScores, list]] = {}
+    done: dict[tuple[int, int], RoundScores] = {}
+    thetas: dict[int, dict[int, list]] = {k: {} for k in chosen}  # a round's models, until all are scored
+    waiting = {k: sum(job[1] == k for job in jobs) for k in chosen}
+
+    def scored(i: int, k: int, result: tuple[RoundScores, list]) -> None:
+        done[i, k], thetas[k][i] = result
+        waiting[k] -= 1
+        if waiting[k] == 0:  # the round's disagreement, then its models are let go
+            models = thetas.pop(k)
+            if len(models) >= 2:
+                order = sorted(models)  # in robot order, whichever finished first: the same sums
+                for j, d in zip(order, disagreement([models[j] for j in order])):
+                    done[j, k].disagreement = d
+
     description = f"evaluating {len(run.ids)} robots"
     if workers > 1 and len(jobs) > 1:
         ctx = mp.get_context("spawn")
         with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=ctx) as pool:
             futures = {pool.submit(_score_job, run, evalset, i, k, final, opts): (i, k) for i, k, final in jobs}
             for f in track(as_completed(futures), description, total=len(futures)):
-                done[futures[f]] = f.result()
+                scored(*futures.pop(f), f.result())
     else:
         for i, k, final in track(jobs, description):
-            done[i, k] = _score_job(run, evalset, i, k, final, opts)
+            scored(i, k, _score_job(run, evalset, i, k, final, opts))
     scores = RunScores(evalset, {i: {} for i in run.ids}, {}, notes)
-    for k in chosen:
-        thetas = {i: done[i, k][1] for i in run.ids if (i, k) in done}
-        for i in thetas:
-            scores.rounds[i][k] = done[i, k][0]
-        if len(thetas) >= 2:
-            for i, d in zip(thetas, disagreement(list(thetas.values()))):
-                scores.rounds[i][k].disagreement = d
+    for k in chosen:  # rounds in order
+        for i in run.ids:
+            if (i, k) in done:
+                scores.rounds[i][k] = done[i, k]
     for i, k, final in jobs:
         if final:
             scores.finals[i] = run.load(i, round=k)
