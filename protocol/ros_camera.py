@@ -24,11 +24,13 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from itertools import islice
 from typing import Callable, Iterable
 
 import zenoh
 import zenoh.ext
 
+from protocol.pacing import paced
 from protocol.rmw_format import (HASH_NOT_SUPPORTED, Attachment, AttachmentError, parse_topic_key, topic_key,
                                  topic_key_pattern)
 
@@ -252,18 +254,8 @@ def replay_bag(path: str | Path, publisher: RosTopicPublisher, rate: float = 1.0
     published = 0
     with AnyReader([Path(path)], default_typestore=_store()) as reader:
         conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
-        t_bag0 = t_wall0 = None
-        for index, (conn, t, raw) in enumerate(reader.messages(connections=conns)):
-            if index < skip:
-                continue
-            if count is not None and published >= count or (stop is not None and stop.is_set()):
-                break
-            if t_bag0 is None:
-                t_bag0, t_wall0 = t, time.monotonic()
-            if rate > 0:
-                delay = t_wall0 + (t - t_bag0) * 1e-9 / rate - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
+        stamped = ((t, (conn, raw)) for conn, t, raw in reader.messages(connections=conns))
+        for conn, raw in paced(islice(stamped, skip, None if count is None else skip + count), rate, stop):
             publisher.publish(conn.topic, conn.msgtype, bytes(raw))
             published += 1
     return published

@@ -29,6 +29,7 @@ from agent.data.ros.decode import CameraModel, camera_model, decode_compressed, 
 from agent.data.ros.keyframes import OnlineKeyframer
 from agent.data.ros.tf import NoTransform, TfTree
 from agent.data.views import DataError
+from protocol.pacing import paced
 
 __all__ = ["Keyframe", "FrameIntake", "replay_bag"]
 
@@ -208,16 +209,8 @@ def replay_bag(path: str | Path, intake: FrameIntake, rate: float, stop: threadi
     try:
         conns = [c for c in bag.connections if c.msgtype == TF or c.topic in (intake.image_topic, intake.info_topic)
                  or (intake.info_topic is None and c.msgtype == CAMERA_INFO)]
-        t_bag0 = t_wall0 = None
         fed = 0
-        for conn, t, msg in bag.messages(conns):
-            if stop.is_set():
-                break
-            if t_bag0 is None:
-                t_bag0, t_wall0 = t, time.monotonic()
-            delay = t_wall0 + (t - t_bag0) * 1e-9 / rate - time.monotonic() if rate > 0 else 0.0
-            if delay > 0 and stop.wait(delay):
-                break
+        for conn, msg in paced(((t, (conn, msg)) for conn, t, msg in bag.messages(conns)), rate, stop):
             intake.feed(conn.topic, conn.msgtype, msg)
             fed += 1
         return fed
