@@ -16,7 +16,7 @@ and ``training.train.field.unbounded``). The figures behind the table are in doc
 |---|---|---|---|---|
 | bounded, images up to 64 px | 32, 2^14, 12 to 256 | 48, warm-up 64 steps | 1024 | termination once it prunes 40% |
 | bounded, wider | 64, 2^17, 16 to 1024 | 64, warm-up 256 | 2048 | as above |
-| unbounded, any width | 32, 2^14, 12 to 256 | 96, warm-up 64, decay 0.6 | 1024 | termination always; rays end at 64 |
+| unbounded, any width | 32, 2^14, 12 to 256 | 96, warm-up 64, decay 0.6, threshold 3 | 1024 | termination always; rays end at 64 |
 
 Why: a lego-sized field on 48 px images cost 2.5 s a step in the room for nothing it could show;
 the unbounded field's linear box fills only the grid's central half, so it wants twice the
@@ -30,7 +30,10 @@ The unbounded grid forgets faster (its running max decays by 0.6 a visit, not ne
 young room field is dense everywhere, and at 0.95 a cell visited every third update still held
 a quarter of that after 1000 steps, so 70-100% of the grid stayed open and rays kept ~100
 samples where the formed field needs ~35 (room at 100 px, 600 steps: 36.5 samples a ray and
-30.33 dB against 93.7 and 29.94 dB).
+30.33 dB against 93.7 and 29.94 dB). Its threshold is 3 (instant-ngp's opacity 0.01 over its
+smallest step, in box units), not 1: a room field holds a fog near density 1 that the lower
+threshold keeps open (room-2-arc at 100 px as a swarm: 372 s and 31.08 / 31.07 dB at 3, 549 s
+and 31.11 / 30.81 dB at 1).
 """
 
 from __future__ import annotations
@@ -69,7 +72,7 @@ def defaults_for(capture: Capture) -> dict[str, Any]:
     small = capture.width is not None and capture.width <= SMALL_IMAGE_WIDTH
     if capture.unbounded:
         return {"rays_per_step": 1024, "field": {**_SMALL_FIELD, "unbounded": True},
-                "occupancy": {"resolution": 96, "warmup_steps": 64, "decay": 0.6},
+                "occupancy": {"resolution": 96, "warmup_steps": 64, "decay": 0.6, "density_threshold": 3.0},
                 "march": {"skip_visibility_above": 1.0, "far": 64.0}}
     table: dict[str, Any] = {"field": dict(_SMALL_FIELD if small else _LARGE_FIELD)}
     if capture.unbounded is False:

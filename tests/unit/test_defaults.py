@@ -18,6 +18,7 @@ def test_the_table_follows_the_capture_and_what_was_given_wins():
     room = defaults_for(Capture(unbounded=True, width=100))
     assert room["field"]["unbounded"] is True and room["occupancy"]["resolution"] == 96
     assert room["occupancy"]["decay"] < 0.95  # a short run must forget the young field's fog
+    assert room["occupancy"]["density_threshold"] > 1  # and close the fog a room field holds near density 1
     assert room["march"]["skip_visibility_above"] == 1.0 and room["rays_per_step"] == 1024
     assert defaults_for(Capture(unbounded=False, width=48))["field"]["grid"]["log2_hashmap_size"] == 14
     assert defaults_for(Capture(unbounded=False, width=100))["field"]["grid"]["log2_hashmap_size"] == 17
