@@ -1,7 +1,7 @@
 """Where a ray's samples go as a field forms: the occupancy grid and the sampler over training (issue 42).
 
     .venv/bin/python benchmarks/bench_grid.py --scene room100 --steps 600 \\
-        --variant occupancy.decay=0.95 --variant occupancy.decay=0.6 --variant march.alpha_threshold=0.01
+        --variant occupancy.decay=0.95,occupancy.density_threshold=1 --variant occupancy.density_threshold=1 --variant none
 
 One model per variant: the scene's ``fitted`` configuration (benchmarks/bench_defaults.py: the
 default for the capture, true poses, one thread) with the variant's ``[training.train]`` settings
@@ -9,7 +9,8 @@ over it, trained on the scene's training views and scored on its held-out ones. 
 steps, on 2048 training rays marched as the trainer marches them: the grid's open fraction, the
 candidates a ray has in open cells, the samples kept for the differentiable pass (in front of
 early termination) and how many of those lie in the linear box, and the share of rays that end
-opaque. A variant is ``key=value`` (dotted below ``training.train``); ``none`` is the default.
+opaque. A variant is ``key=value[,key=value...]`` (dotted below ``training.train``); ``none`` is the
+default.
 """
 
 from __future__ import annotations
@@ -49,12 +50,14 @@ def variant_config(scene: str, views, steps: int, variant: str) -> TrainConfig:
     cfg = config(scene, "fitted", views, steps)
     if variant == "none":
         return cfg
-    key, _, text = variant.partition("=")
-    try:
-        value = ast.literal_eval(text)
-    except (ValueError, SyntaxError):
-        value = text
-    return with_setting(cfg, key.strip(), value)
+    for setting in variant.split(","):
+        key, _, text = setting.partition("=")
+        try:
+            value = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            value = text
+        cfg = with_setting(cfg, key.strip(), value)
+    return cfg
 
 
 @torch.no_grad()
@@ -112,7 +115,8 @@ def main() -> None:
     ap.add_argument("--scene", default="room100", choices=sorted(SCENES))
     ap.add_argument("--steps", type=int, default=600)
     ap.add_argument("--every", type=int, default=100)
-    ap.add_argument("--variant", action="append", default=None, help="key=value below training.train, or none")
+    ap.add_argument("--variant", action="append", default=None,
+                    help="key=value[,key=value...] below training.train, or none")
     args = ap.parse_args()
     torch.set_num_threads(1)
     views = load_views(SCENES[args.scene][0], width=SCENES[args.scene][1])
