@@ -378,18 +378,18 @@ def test_a_robot_that_cannot_align_is_quarantined_and_the_others_lose_nothing(tm
         img = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
         cv2.imwrite(str(png), rng.integers(0, 256, img.shape, dtype=np.uint8))
     alone = _without_robot(swarm, 3, tmp_path)
+    seen: list[str] = []  # status while the swarm runs: robot 2 (coarse) may end before robot 3 is judged
     for s in (swarm, alone):
         try:
             s.start_all()
-            if s is swarm:
-                swarm.wait_round(3, 1)
-                out = subprocess.run([sys.executable, "-m", "cli", "status", "--swarm", str(swarm.swarm_file),
-                                      "--once", "2"], cwd=REPO, capture_output=True, text=True, timeout=60,
-                                     env=dict(os.environ, COLUMNS="250"))
+            while s is swarm and not any("UNALIGNED" in o for o in seen) and len(seen) < 30:
+                seen.append(subprocess.run([sys.executable, "-m", "cli", "status", "--swarm", str(swarm.swarm_file),
+                                            "--once", "2"], cwd=REPO, capture_output=True, text=True, timeout=60,
+                                           env=dict(os.environ, COLUMNS="250")).stdout)
             s.wait_all()
         finally:
             s.stop()
-    assert "UNALIGNED" in out.stdout and "coarse" in out.stdout, out.stdout + out.stderr
+    assert any("UNALIGNED" in o for o in seen) and any("coarse" in o for o in seen), seen[-2:]
     tel3 = swarm.telemetry(3)
     assert all(t.alignment == "unaligned" and t.heard == [] for t in tel3), tel3
     assert "UNALIGNED" in swarm.log_text(3)
