@@ -16,8 +16,6 @@ default.
 from __future__ import annotations
 
 import argparse
-import ast
-import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -34,30 +32,14 @@ from agent.nerf.rays import pixel_centre, pixel_rays, transform_rays  # noqa: E4
 from agent.nerf.sampler import march, segment_starts  # noqa: E402
 from agent.trainer import RobotTrainer, TrainConfig  # noqa: E402
 from benchmarks.bench_defaults import SCENES, config  # noqa: E402
+from cli.config import apply_overrides  # noqa: E402
 
 PROBE_RAYS = 2048
 
 
-def with_setting(cfg, dotted: str, value):
-    """``cfg`` with one dotted setting replaced (``occupancy.decay``)."""
-    head, _, rest = dotted.partition(".")
-    if not rest:
-        return dataclasses.replace(cfg, **{head: value})
-    return dataclasses.replace(cfg, **{head: with_setting(getattr(cfg, head), rest, value)})
-
-
 def variant_config(scene: str, views, steps: int, variant: str) -> TrainConfig:
     cfg = config(scene, "fitted", views, steps)
-    if variant == "none":
-        return cfg
-    for setting in variant.split(","):
-        key, _, text = setting.partition("=")
-        try:
-            value = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            value = text
-        cfg = with_setting(cfg, key.strip(), value)
-    return cfg
+    return cfg if variant == "none" else apply_overrides(cfg, variant.split(","))
 
 
 @torch.no_grad()
