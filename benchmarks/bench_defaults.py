@@ -69,12 +69,17 @@ def config(scene: str, name: str, views, steps: int) -> TrainConfig:
     return dataclasses.replace(cfg, total_steps=steps, pose=dataclasses.replace(cfg.pose, mode="fixed"))
 
 
-def run_one(scene: str, name: str, steps: int, views) -> dict:
+def centralised(scene: str, views, cfg: TrainConfig) -> tuple[RobotTrainer, list[int]]:
+    """The centralised model of the scene's training views, and the held-out views' indices."""
     test = test_indices(len(views), SCENES[scene][2])
     train = [i for i in range(len(views)) if i not in set(test)]
-    cfg = config(scene, name, views, steps)
     centre, half, _ = estimate_scene_box(views, cfg.field.unbounded)
-    trainer = RobotTrainer(views.subset(train), cfg, box_from_center(centre, half))
+    return RobotTrainer(views.subset(train), cfg, box_from_center(centre, half)), test
+
+
+def run_one(scene: str, name: str, steps: int, views) -> dict:
+    cfg = config(scene, name, views, steps)
+    trainer, test = centralised(scene, views, cfg)
     times, samples = [], []
     for _ in range(steps):
         t0 = time.perf_counter()

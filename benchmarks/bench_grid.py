@@ -26,12 +26,10 @@ sys.path.insert(0, str(ROOT))
 import torch  # noqa: E402
 
 from agent.data.loaders import load_views  # noqa: E402
-from agent.data.split import estimate_scene_box, test_indices  # noqa: E402
-from agent.geometry import box_from_center  # noqa: E402
 from agent.nerf.rays import pixel_centre, pixel_rays, transform_rays  # noqa: E402
 from agent.nerf.sampler import march, segment_starts  # noqa: E402
 from agent.trainer import RobotTrainer, TrainConfig  # noqa: E402
-from benchmarks.bench_defaults import SCENES, config  # noqa: E402
+from benchmarks.bench_defaults import SCENES, centralised, config  # noqa: E402
 from cli.config import apply_overrides  # noqa: E402
 
 PROBE_RAYS = 2048
@@ -70,11 +68,7 @@ def probe(trainer: RobotTrainer, generator: torch.Generator) -> dict[str, float]
 
 
 def run_variant(scene: str, views, steps: int, every: int, variant: str) -> dict:
-    cfg = variant_config(scene, views, steps, variant)
-    test = test_indices(len(views), SCENES[scene][2])
-    train = [i for i in range(len(views)) if i not in set(test)]
-    centre, half, _ = estimate_scene_box(views, cfg.field.unbounded)
-    trainer = RobotTrainer(views.subset(train), cfg, box_from_center(centre, half))
+    trainer, test = centralised(scene, views, variant_config(scene, views, steps, variant))
     generator = torch.Generator().manual_seed(1)
     seconds = 0.0
     for step in range(steps + 1):
