@@ -272,3 +272,20 @@ def test_the_depth_term_does_not_depend_on_the_scale_of_the_robots_frame():
     losses = [RobotTrainer(v, cfg, box, initial_pose=pose).train_step()["depth_loss"]
               for v, pose in ((views, torch.eye(4)), (big, shrink))]
     assert losses[0] > 0 and losses[1] == pytest.approx(losses[0], rel=1e-4), losses
+
+
+def test_a_sample_budget_shrinks_the_batch_while_rays_hold_many_samples():
+    """``target_samples_per_step``: rays a step = budget / samples a ray (running mean), between
+    ``min_rays_per_step`` and ``rays_per_step``."""
+    views = load_views("procedural:views=2,width=16")
+    center, half, _ = estimate_scene_box(views)
+    cfg = small_config(10)
+    cfg.target_samples_per_step, cfg.min_rays_per_step = 8192, 64
+    trainer = RobotTrainer(views, cfg, box_from_center(center, half))
+    asked = []
+    sample_pixels = trainer._sample_pixels
+    trainer._sample_pixels = lambda n: (asked.append(n), sample_pixels(n))[1]
+    for samples_a_ray, rays in ((100.0, 81), (4.0, 1024), (1000.0, 64)):
+        trainer.samples_per_ray = samples_a_ray
+        trainer.train_step()
+        assert asked[-1] == rays

@@ -20,6 +20,8 @@ def test_the_table_follows_the_capture_and_what_was_given_wins():
     assert room["occupancy"]["decay"] < 0.95  # a short run must forget the young field's fog
     assert room["occupancy"]["density_threshold"] > 1  # and close the fog a room field holds near density 1
     assert room["march"]["skip_visibility_above"] == 1.0 and room["rays_per_step"] == 1024
+    # a sample budget that shrinks the batch while the young field's fog holds ~100 samples a ray
+    assert 0 < room["target_samples_per_step"] < 1024 * 100
     assert defaults_for(Capture(unbounded=False, width=48))["field"]["grid"]["log2_hashmap_size"] == 14
     assert defaults_for(Capture(unbounded=False, width=100))["field"]["grid"]["log2_hashmap_size"] == 17
     assert defaults_for(Capture()) == {}  # nothing known: the dataclasses' defaults
