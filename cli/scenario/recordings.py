@@ -8,6 +8,8 @@ no scene file: the reference derives the field box), exactly as robots with thei
 
 ``truth.json`` and ``scene.json`` are rewritten for the evaluation only: each robot's local frame
 is now its odometry frame, so the report's pose errors are against the offsets applied here.
+The summary keeps which view each robot recorded at which stamp: with ``record.replay`` the report
+tells when two robots' keyframes first showed the same place (:mod:`cli.scenario.meeting`).
 """
 
 from __future__ import annotations
@@ -56,6 +58,8 @@ def record_robots(spec, data: Path, echo=print) -> dict:
     for k, i in enumerate(spec.ids):
         folder = data / f"robot{i}"
         views = load_views(folder, load_depth=False)  # pinhole, in the split's local frame of robot i
+        if i in rec.reverse:  # its path runs the other way: it meets a forward neighbour only at the end
+            views = views.subset(list(range(len(views)))[::-1])
         offsets[i] = _odometry_offset(rng, rec.offset_translation)
         storage = rec.storage[k % len(rec.storage)]
         cfg = RecordConfig(storage=storage, image_rate_hz=rec.image_rate_hz, tf_rate_factor=rec.tf_rate_factor,
@@ -69,7 +73,8 @@ def record_robots(spec, data: Path, echo=print) -> dict:
             bag_storage_file(folder / "bag").rename(folder / f"robot{i}.mcap")
             shutil.rmtree(folder / "bag")
         summary[i] = {"storage": storage, "images": written["images"], "tf": written["tf"],
-                      "recording": str(recording_of(folder).relative_to(data))}
+                      "recording": str(recording_of(folder).relative_to(data)),
+                      "views": list(views.names), "stamps_s": written["stamps_s"]}  # which view is at which stamp
         echo(f"[scenario] robot {i}: {written['images']} images and {written['tf']} transforms recorded as "
              f"{storage} ({summary[i]['recording']})")
     world_from_odom = {i: np.array(truth["robots"][str(i)]["T_world_from_local"]) @ np.linalg.inv(offsets[i])

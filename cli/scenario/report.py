@@ -29,6 +29,8 @@ from agent.metrics import finite_mean
 from agent.telemetry import RoundRecord, read_telemetry
 from cli.config import from_dict
 from cli.scenario.figures import plot_convergence, poses_known, render_sheet, write_orbit
+from cli.scenario.meeting import markdown as meeting_markdown
+from cli.scenario.meeting import meetings
 from cli.scenario.spec import ScenarioSpec
 
 __all__ = ["build_report", "load_run_spec"]
@@ -99,6 +101,9 @@ def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[st
 
     scores = timed("scoring", lambda: score_run(run, opts, log, workers=spec.report.workers))
     report = _report_doc(spec, run_doc, scores, telemetry)
+    if spec.record.replay:  # robots that trained while exploring: when they met, when they were aligned
+        report["meetings"] = meetings(out, spec.ids, spec.links, (run_doc.get("split") or {}).get("recordings") or {},
+                                      telemetry, spec.reference_id)
     if spec.training.own_holdout_every > 0:  # no truth needed: every robot on every robot's own held-out frames
         report["cross"] = timed("cross", lambda: _cross(run, spec, log))
     baselines = None
@@ -249,8 +254,8 @@ def _f(x, fmt=".2f") -> str:
 
 def _markdown(report: dict, spec: ScenarioSpec, ids: list[int]) -> str:
     sections = (_md_header(report, spec), _md_finals(report, ids), _md_final_extras(report, spec, ids),
-                _md_cross(report), _md_calibration(report, ids), _md_comparison(report, spec, ids), _md_faults(report),
-                _md_links(report))
+                _md_meetings(report), _md_cross(report), _md_calibration(report, ids), _md_comparison(report, spec, ids),
+                _md_faults(report), _md_links(report))
     return "\n".join([line for lines in sections + (_md_figures(report),) for line in lines])
 
 
@@ -351,6 +356,14 @@ def _md_final_extras(report: dict, spec: ScenarioSpec, ids: list[int]) -> list[s
                     "reference's focal length as its SfM found it and training refined it (see 'Evaluation frames'). "
                     "With the truth's focal length instead, the views placed as above: PSNR all ")
     )
+
+
+def _md_meetings(report: dict) -> list[str]:
+    if "meetings" not in report:
+        return []
+    errors = {i: (r["final"].get("rotation_error_deg"), r["final"].get("translation_error"))
+              for i, r in report["robots"].items()}
+    return meeting_markdown(report["meetings"], errors)
 
 
 def _md_cross(report: dict) -> list[str]:

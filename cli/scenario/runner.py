@@ -285,6 +285,8 @@ class ScenarioRunner:
 
             data = recording_of(data)  # its tls/ is beside it
         argv = self.up_command(i, data, self.swarm, self.robots[i].run_dir, listen, connect)
+        if self.spec.record.replay:
+            argv += ["--replay", f"{self.spec.record.replay_pace:g}"]
         return self.lab.exec_argv(i, argv) if self.lab else argv
 
     def _start(self, i: int) -> None:

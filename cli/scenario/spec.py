@@ -252,10 +252,15 @@ class RecordSpec:
     mount_tilt_deg: float = 15.0
     offset_translation: float = 1.0  # each odometry frame: a random rotation and a shift this long
     seed: int = 0
+    reverse: list[int] = field(default_factory=list)  # robots that record their views last to first (paths that meet late)
+    replay: bool = False  # robots train while their bag plays (`up --replay`), not from all of it at start
+    replay_pace: float = 1.0  # --replay: this multiple of the recorded pace
 
     def __post_init__(self) -> None:
         if not self.storage or self.image_rate_hz <= 0 or self.tf_rate_factor < 2 or self.k1 < 0:
             raise ValueError("record: storage must list mcap/sqlite3, image_rate_hz > 0, tf_rate_factor >= 2, k1 >= 0")
+        if self.replay_pace <= 0:
+            raise ValueError("record: replay_pace must be > 0 (1.0: as recorded)")
 
 
 @dataclass
@@ -343,6 +348,10 @@ class ScenarioSpec:
         """Robot image width and images-only robots: what they need, said rather than overridden."""
         if self.record.enabled and self.split.images_only:
             raise ValueError("record.enabled: the robots record bags with their poses; split.images_only must be false")
+        if (self.record.replay or self.record.reverse) and not self.record.enabled:
+            raise ValueError("record.replay and record.reverse are about the robots' bags: they need record.enabled")
+        if not set(self.record.reverse) <= set(self.ids):
+            raise ValueError(f"record.reverse: {sorted(set(self.record.reverse) - set(self.ids))} not among the robots")
         w = self.split.robot_image_width
         if w is not None:
             if self.width is None:

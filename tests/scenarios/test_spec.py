@@ -132,3 +132,11 @@ def test_pose_panels_only_where_the_pose_is_measured(tmp_path, extra, known):
 
     assert poses_known(load_scenario(write(tmp_path, extra))) is known
     assert "orbit_frames" in error(tmp_path, "[report]\norbit_frames = -1\n")
+
+
+def test_replayed_and_reversed_recordings_need_recordings_and_known_robots(tmp_path):
+    assert "need record.enabled" in error(tmp_path, "[record]\nreplay = true\n")
+    assert "record.reverse: [7] not among the robots" in error(tmp_path, "[record]\nenabled = true\nreverse = [7]\n")
+    assert "replay_pace must be > 0" in error(tmp_path, "[record]\nenabled = true\nreplay = true\nreplay_pace = 0\n")
+    s = load_scenario(write(tmp_path, "[record]\nenabled = true\nreplay = true\nreverse = [2]\n"))
+    assert s.record.replay and s.record.reverse == [2]
