@@ -259,7 +259,7 @@ class Bootstrap:
         if self.box_pending:
             self.adopt_box(boxes[j], f"robot {j}")
             serve()  # with the box: robots aligning through us need it too
-        self.trainer.pose.set_initial(T.float(), sigma_deg=sigma)
+        self.trainer.pose.set_initial(T.float(), sigma_deg=sigma, step=self.trainer.step)
         with torch.no_grad():
             self.board.set(alignment=Alignment.COARSE, alignment_detail=f"via {j}{how}: {inliers} inliers",
                            pose7=pose_summary(self.trainer.pose.matrix())["params7"])

@@ -56,6 +56,7 @@ class RelativePose(nn.Module):
         self.log_scale = nn.Parameter(torch.zeros(()))
         self.from_estimate = False  # T0 came from an estimate (coarse alignment), not the identity
         self.estimate_sigma_deg = math.nan  # that estimate's rotation 1-sigma, when it stated one
+        self.estimate_step = 0  # the training step the estimate arrived at
         self.set_trainable(self.mode != "fixed")
 
     def set_trainable(self, trainable: bool) -> None:
@@ -100,16 +101,18 @@ class RelativePose(nn.Module):
             p.zero_()
 
     @torch.no_grad()
-    def set_initial(self, transform: Tensor, sigma_deg: float = math.nan) -> None:
+    def set_initial(self, transform: Tensor, sigma_deg: float = math.nan, step: int = 0) -> None:
         """Start from another estimate (e.g. the coarse keyframe alignment) with a zero correction.
 
-        sigma_deg: the estimate's rotation 1-sigma, which bounds how fast the pose then learns.
+        sigma_deg: the estimate's rotation 1-sigma, which bounds how fast the pose then learns;
+        step: the training step it arrived at (a robot placed late has only the rest of the run).
         """
         self.base.copy_(transform.to(self.base))
         for p in (self.phi, self.translation, self.log_scale):
             p.zero_()
         self.from_estimate = True
         self.estimate_sigma_deg = float(sigma_deg)
+        self.estimate_step = int(step)
 
     def unfreeze(self) -> None:
         """Learn again (a robot with a lower id came back and is the reference again)."""

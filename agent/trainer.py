@@ -303,11 +303,14 @@ class RobotTrainer:
         sigma = self.pose.estimate_sigma_deg
         if not math.isfinite(sigma) or p.lr_rotation <= 0:
             return p.lr_factor_from_estimate
-        # Sum of the decayed schedule (a geometric series of N terms): the rotation travels at most
-        # lr_rotation x this at 1x.
-        n = max(self.cfg.total_steps - p.start_step, 1)
-        ratio = p.decay_to ** (1.0 / n)
-        reach = float(n) if ratio >= 1.0 else (1.0 - ratio ** n) / (1.0 - ratio)
+        # Sum of what is left of the decayed schedule from the step the estimate arrived at (a
+        # geometric series): the rotation travels at most lr_rotation x this at 1x. A robot placed
+        # late (its path met a neighbour's only then) has the same travel in fewer, smaller steps.
+        span = max(self.cfg.total_steps - p.start_step, 1)
+        first = min(max(self.pose.estimate_step - p.start_step, 0), span - 1)  # steps of the schedule already gone
+        ratio = p.decay_to ** (1.0 / span)
+        left = span - first
+        reach = float(left) if ratio >= 1.0 else ratio ** first * (1.0 - ratio ** left) / (1.0 - ratio)
         return min(1.0, p.travel_sigmas * math.radians(sigma) / (p.lr_rotation * reach))
 
     def _camera_lr_factor(self, step: int) -> float:
@@ -555,6 +558,7 @@ class RobotTrainer:
             "pose_trainable": self.pose.trainable,
             "pose_from_estimate": self.pose.from_estimate,
             "pose_estimate_sigma_deg": self.pose.estimate_sigma_deg,
+            "pose_estimate_step": self.pose.estimate_step,
             "depth": {"log_scale": self.depth_log_scale.detach().clone(), "shift": self.depth_shift.detach().clone()},
             "appearance": self.appearance.params.detach().clone(),
             "cameras": {"phi": self.view_phi.detach().clone(), "shift": self.view_shift.detach().clone(),
@@ -574,6 +578,7 @@ class RobotTrainer:
         self.pose.set_trainable(bool(state["pose_trainable"]))
         self.pose.from_estimate = bool(state.get("pose_from_estimate", False))
         self.pose.estimate_sigma_deg = float(state.get("pose_estimate_sigma_deg", math.nan))
+        self.pose.estimate_step = int(state.get("pose_estimate_step", 0))
         with torch.no_grad():
             self.depth_log_scale.copy_(state["depth"]["log_scale"])
             self.depth_shift.copy_(state["depth"]["shift"])

@@ -143,11 +143,20 @@ def test_an_estimate_with_a_sigma_lets_the_pose_travel_only_a_few_sigma():
         assert travels[-1] == pytest.approx(cfg.pose.travel_sigmas * sigma_deg, rel=1e-6)
         assert trainer._pose_lr_factor(99) == 0.0  # still waits for the field
     assert trainer.pose_lr_scale() < 1.0
+    for arrived in (100, 150, 200):  # placed late: the same travel over what is left of the run
+        trainer.pose.set_initial(torch.eye(4), sigma_deg=0.2, step=arrived)
+        steps = sum(trainer._pose_lr_factor(s) * cfg.pose.lr_rotation for s in range(arrived, cfg.total_steps))
+        assert math.degrees(steps) == pytest.approx(cfg.pose.travel_sigmas * 0.2, rel=1e-6)
+    trainer.pose.set_initial(torch.eye(4), sigma_deg=0.2, step=299)  # too late for that: full rate, no more
+    assert trainer.pose_lr_scale() == 1.0
     trainer.pose.set_initial(torch.eye(4), sigma_deg=45.0)  # a loose estimate: full rate, no more
     assert trainer.pose_lr_scale() == 1.0
     fresh = RobotTrainer(views, cfg, box_from_center(center, half))
     fresh.load_state_dict(trainer.state_dict())  # a restart keeps the estimate's sigma
     assert fresh.pose.estimate_sigma_deg == 45.0 and fresh.pose_lr_scale() == 1.0
+    trainer.pose.set_initial(torch.eye(4), sigma_deg=0.2, step=250)
+    fresh.load_state_dict(trainer.state_dict())  # ... and the step it arrived at
+    assert fresh.pose.estimate_step == 250 and fresh.pose_lr_scale() == pytest.approx(trainer.pose_lr_scale())
 
 
 def test_fit_view_pose_undoes_a_misplaced_held_out_camera():
