@@ -29,9 +29,10 @@ def test_robots_meet_when_both_have_admitted_a_shared_view_and_the_rounds_to_ali
     got = meetings(tmp_path, [1, 2], [(1, 2)], recordings, telemetry, reference=1)
     assert got["2"]["met"] == 1 and got["2"]["met_round"] == 4  # t=107: in round 4 (ends at 108)
     assert got["2"]["aligned_round"] == 6 and got["2"]["rounds_to_align"] == 2  # the last alignment counts
+    assert got["2"]["same_view_round"] == 4 and got["2"]["rounds_to_align_same_view"] == 2  # d: both by t=107
     assert got["1"]["reference"] and got["1"]["met_round"] == 4 and got["2"]["keyframes"] == 3
     table = "\n".join(markdown(got, {"2": (0.5, 0.01)}))
-    assert "| 2 | 3 | robot 1, round 4 | 6 | 2 | 0.50 | 0.010 |" in table and "| 1 | 4 |" in table
+    assert "| 2 | 3 | robot 1, round 4 | 4 | 6 | 2 / 2 | 0.50 | 0.010 |" in table and "| 1 | 4 |" in table
 
 
 def test_robots_that_never_share_a_place_never_meet(tmp_path):
