@@ -40,6 +40,9 @@ error that names it. Example (every table but ``[scenario]`` is optional)::
 
     [baseline]
     enabled = true                             # also train the centralised model and each robot alone
+    [record]                                   # robots run from ROS 2 bags of their views (RecordSpec)
+    # enabled = true; reverse = [2]            # ... robot 2's bag walks its views last to first
+    # replay = true                            # ... and they train while the bags play (up --replay)
     [report]
     eval_every = 1                             # evaluate rounds/<k>.safetensors every k-th round
     orbit_frames = 36                          # orbit.gif of the reference's final model (0 = none)
