@@ -31,6 +31,8 @@ def _admitted(run_dir: Path, stamps_s: list[float], views: list[str]) -> list[tu
     stamps = np.asarray(stamps_s)
     out = []
     for f in frames:
+        if "stamp_ns" not in f or "admitted_ns" not in f or not len(stamps):
+            continue  # a cache of before admission times were kept
         k = int(np.abs(stamps - f["stamp_ns"] * 1e-9).argmin())  # the recorded image it came from
         out.append((f["admitted_ns"] * 1e-9, views[k]))
     return out
