@@ -86,12 +86,24 @@ class HostileWire:
     def __init__(self, base: ProtocolWire, hostile: int, attack: Callable[[int, Tensors], Tensors] | None,
                  attack_from: int) -> None:
         self.base, self.hostile, self.attack, self.attack_from = base, hostile, attack, attack_from
+        self.sent_honestly: Tensors | None = None  # the hostile robot's real model, as it would have gone out
 
     def __call__(self, sender: int, round_index: int, theta: Mapping[str, torch.Tensor]) -> Tensors:
         got = self.base(sender, round_index, theta)
         if sender != self.hostile or self.attack is None or round_index < self.attack_from:
             return got
+        self.sent_honestly = got
         return self.attack(round_index, got)
+
+    def keep_own_anchor(self, trainer) -> None:
+        """The hostile robot anchors its own consensus on its real model, as the real daemon with one
+        hostile change (it forges only what it sends) does; the simulation would hand it the forgery."""
+        def honest(method):
+            def call(*args, own=None, **kwargs):
+                return method(*args, own=self.sent_honestly if own is not None and self.sent_honestly else own,
+                              **kwargs)
+            return call
+        trainer.begin_round, trainer.end_round = honest(trainer.begin_round), honest(trainer.end_round)
 
 
 def run_poison(attack: str, robust: bool, split, neighbours, cfg: SwarmTrainingConfig, ev: EvalSet, hostile: int,
@@ -106,6 +118,7 @@ def run_poison(attack: str, robust: bool, split, neighbours, cfg: SwarmTrainingC
     base = ProtocolWire(CompressionConfig(), next(iter(sim.thetas.values())), ids)
     forge = None if attack in ("silent", "clean") else _attack(attack, seed)
     sim.wire = HostileWire(base, hostile, forge, attack_from)
+    sim.wire.keep_own_anchor(sim.robots[hostile].trainer)
     named: dict[int, int] = {}  # honest neighbour -> the round it first named the hostile robot
     false_clips = 0
 
