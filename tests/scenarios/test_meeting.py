@@ -18,10 +18,11 @@ def _robot(out, i: int, admitted: list[tuple[float, float]], events: list[dict])
 
 
 def test_robots_meet_when_both_have_admitted_a_shared_view_and_the_rounds_to_alignment_follow(tmp_path):
-    # robot 1 walks a -> d, robot 2 walks f -> c: they share c and d, robot 1 reaches c at t=103, robot 2 at t=107
+    # robot 1 walks a -> d, robot 2 walks f -> c: they share c and d. Both hold a shared view at t=107
+    # (robot 1 c at 103, robot 2 d at 107); both hold the same one, d, only at t=110
     recordings = {"1": {"views": ["a", "b", "c", "d"], "stamps_s": [0.0, 1.0, 2.0, 3.0]},
                   "2": {"views": ["f", "e", "d", "c"], "stamps_s": [50.0, 51.0, 52.0, 53.0]}}
-    _robot(tmp_path, 1, [(0.0, 100.0), (1.0, 101.0), (2.0, 103.0), (3.0, 104.0)], [])
+    _robot(tmp_path, 1, [(0.0, 100.0), (1.0, 101.0), (2.0, 103.0), (3.0, 110.0)], [])
     _robot(tmp_path, 2, [(50.0, 100.0), (51.0, 102.0), (52.001, 107.0)],  # a stamp is matched to the nearest image
            [{"event": "aligned", "round": 0, "how": "start"}, {"event": "aligned", "round": 6},
             {"event": "entered_consensus", "round": 6}])
@@ -29,10 +30,10 @@ def test_robots_meet_when_both_have_admitted_a_shared_view_and_the_rounds_to_ali
     got = meetings(tmp_path, [1, 2], [(1, 2)], recordings, telemetry, reference=1)
     assert got["2"]["met"] == 1 and got["2"]["met_round"] == 4  # t=107: in round 4 (ends at 108)
     assert got["2"]["aligned_round"] == 6 and got["2"]["rounds_to_align"] == 2  # the last alignment counts
-    assert got["2"]["same_view_round"] == 4 and got["2"]["rounds_to_align_same_view"] == 2  # d: both by t=107
+    assert got["2"]["same_view_round"] == 5 and got["2"]["rounds_to_align_same_view"] == 1  # t=110: round 5
     assert got["1"]["reference"] and got["1"]["met_round"] == 4 and got["2"]["keyframes"] == 3
     table = "\n".join(markdown(got, {"2": (0.5, 0.01)}))
-    assert "| 2 | 3 | robot 1, round 4 | 4 | 6 | 2 / 2 | 0.50 | 0.010 |" in table and "| 1 | 4 |" in table
+    assert "| 2 | 3 | robot 1, round 4 | 5 | 6 | 2 / 1 | 0.50 | 0.010 |" in table and "| 1 | 4 |" in table
 
 
 def test_robots_that_never_share_a_place_never_meet(tmp_path):
