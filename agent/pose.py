@@ -36,6 +36,22 @@ class PoseConfig:
         check(self, lr_rotation=">= 0", lr_translation=">= 0", lr_scale=">= 0", start_step=">= 0",
               decay_to="in (0, 1]", lr_factor_from_estimate=">= 0", travel_sigmas="> 0")
 
+    def estimate_lr_scale(self, sigma_deg: float, arrived_step: int, total_steps: int) -> float:
+        """Pose lrs x this from an estimate of rotation 1-sigma ``sigma_deg`` that arrived at
+        ``arrived_step`` of ``total_steps``: the rest of the run moves it at most ``travel_sigmas`` sigma.
+
+        What is left of the decayed schedule from that step is a geometric series; the rotation
+        travels at most lr_rotation x its sum at 1x. A robot placed late (its path met a
+        neighbour's only then) has the same travel in fewer, smaller steps."""
+        if not math.isfinite(sigma_deg) or self.lr_rotation <= 0:
+            return self.lr_factor_from_estimate
+        span = max(total_steps - self.start_step, 1)
+        first = min(max(arrived_step - self.start_step, 0), span - 1)  # steps of the schedule already gone
+        ratio = self.decay_to ** (1.0 / span)
+        left = span - first
+        reach = float(left) if ratio >= 1.0 else ratio ** first * (1.0 - ratio ** left) / (1.0 - ratio)
+        return min(1.0, self.travel_sigmas * math.radians(sigma_deg) / (self.lr_rotation * reach))
+
 
 class RelativePose(nn.Module):
     """``T = B^-1 Exp(delta) B T0``: a correction ``delta`` applied in box coordinates.

@@ -297,21 +297,10 @@ class RobotTrainer:
 
     def pose_lr_scale(self) -> float:
         """Pose lrs x this for the whole run: 1 from the identity, less from a (precise) estimate."""
-        p = self.cfg.pose
         if not self.pose.from_estimate:
             return 1.0
-        sigma = self.pose.estimate_sigma_deg
-        if not math.isfinite(sigma) or p.lr_rotation <= 0:
-            return p.lr_factor_from_estimate
-        # Sum of what is left of the decayed schedule from the step the estimate arrived at (a
-        # geometric series): the rotation travels at most lr_rotation x this at 1x. A robot placed
-        # late (its path met a neighbour's only then) has the same travel in fewer, smaller steps.
-        span = max(self.cfg.total_steps - p.start_step, 1)
-        first = min(max(self.pose.estimate_step - p.start_step, 0), span - 1)  # steps of the schedule already gone
-        ratio = p.decay_to ** (1.0 / span)
-        left = span - first
-        reach = float(left) if ratio >= 1.0 else ratio ** first * (1.0 - ratio ** left) / (1.0 - ratio)
-        return min(1.0, p.travel_sigmas * math.radians(sigma) / (p.lr_rotation * reach))
+        return self.cfg.pose.estimate_lr_scale(self.pose.estimate_sigma_deg, self.pose.estimate_step,
+                                               self.cfg.total_steps)
 
     def _camera_lr_factor(self, step: int) -> float:
         return self._decayed_from(step, self.cfg.cameras.start_step) if self.cfg.cameras.enabled else 0.0
