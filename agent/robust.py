@@ -29,6 +29,16 @@ model moves from one round to the next about as much as the robot's own (0.82-1.
 tests' scene, 0.93-1.07 on the quickstart's); a replayed old model does not move at all, noise
 jumps every round. One whose movement is outside ``move_band`` (4) of ours is erratic.
 
+**A model unrelated to ours.** Every robot starts from the same theta^0 (``init_seed``) and
+consensus pulls them together, so an honest neighbour's tensors correlate with ours (Pearson r of
+0.38-1.0 on the tests' scene, a z-score ``r sqrt(n)`` over 100 for the hash table); noise of the
+model's scale does not (z about N(0, 1)), whatever its distance, and -10 theta anticorrelates.
+A tensor of n >= (2 ``min_correlation_z``)^2 values whose z is under ``min_correlation_z`` enters
+as our own (as a clipped one at factor 0), and the neighbour is odd at once, as a gross clip is.
+Smaller tensors (biases) cannot show it and are not judged. The distance and movement tests
+scale with how fast the robots learn (noise of the model's scale passes both while the field
+learns fast); this one does not.
+
 **Reporting and quarantine.** A neighbour clipped or erratic ``report_after`` rounds in a row, or
 clipped once grossly (further than ``clip_factor`` times the bound), is reported. With at least two
 neighbours, one of which is within the bound (the vote says the normal is not what this one
@@ -69,12 +79,16 @@ class RobustConfig:
     # times what this robot's did (honest robots: 0.82-1.22 on the tests' scene, 0.93-1.07 on the
     # quickstart's): a replayed model does not move at all, noise jumps every round.
     move_band: float = 4.0
+    # A tensor of a neighbour's model must correlate with ours at least this many standard errors
+    # (Pearson r times sqrt(size)): honest ones measure 15-240 on the tests' scene, noise ~N(0, 1). 0: off.
+    min_correlation_z: float = 5.0
     report_after: int = 3  # rounds in a row clipped or erratic before a neighbour is reported (and quarantined)
     quarantine: bool = True  # ... left out of consensus, with at least two neighbours to vote
     readmit_after: int = 3  # rounds in a row within the bound before a quarantined neighbour comes back
 
     def __post_init__(self) -> None:
-        check(self, clip_factor="> 1", window=">= 1", floor="> 0", move_band="> 1", report_after=">= 1",
+        check(self, clip_factor="> 1", window=">= 1", floor="> 0", move_band="> 1", min_correlation_z=">= 0",
+              report_after=">= 1",
               readmit_after=">= 1")
 
 
@@ -82,7 +96,7 @@ class RobustConfig:
 class ClipNews:
     """Something an operator should hear about a neighbour (the daemon logs it and writes an event)."""
 
-    kind: str  # "clipped_neighbour" | "erratic_neighbour" | "quarantined" | "readmitted"
+    kind: str  # "clipped_neighbour" | "erratic_neighbour" | "uncorrelated_neighbour" | "quarantined" | "readmitted"
     neighbour: int
     rounds: int  # rounds in a row that led to it
     factor: float  # the smallest clip factor over its tensors this round (1.0: within bound)
@@ -90,6 +104,33 @@ class ClipNews:
 
 def _distances(own: Sequence[Tensor], theirs: Sequence[Tensor]) -> list[float]:
     return [float(torch.linalg.vector_norm(t - o)) for o, t in zip(own, theirs)]
+
+
+def _centred_unit(x: Tensor) -> Tensor | None:
+    """x flattened, centred and scaled to unit norm (in float32 without overflow: 1e30s stay
+    finite); None when it has no spread to correlate."""
+    x = x.detach().flatten().float()
+    x = x - x.mean()
+    peak = x.abs().max()
+    if not torch.isfinite(peak) or peak == 0:
+        return None
+    x = x / peak
+    norm = torch.linalg.vector_norm(x)
+    return x / norm if norm > 0 else None
+
+
+def _unrelated(own: Sequence[Tensor], theirs: Sequence[Tensor], min_z: float) -> list[bool]:
+    """Per tensor: is it large enough to tell and its correlation with ours under ``min_z``
+    standard errors? (A tensor with no spread, a constant, correlates with nothing.)"""
+    out = []
+    for o, t in zip(own, theirs):
+        if min_z == 0 or o.numel() < (2 * min_z) ** 2:
+            out.append(False)
+            continue
+        a, b = _centred_unit(o), _centred_unit(t)
+        r = 0.0 if a is None or b is None else float(a @ b)
+        out.append(r * o.numel() ** 0.5 < min_z)
+    return out
 
 
 class NeighbourClipper:
@@ -110,6 +151,7 @@ class NeighbourClipper:
         self.factors: dict[int, float] = {}  # last round: neighbour -> smallest clip factor (1.0: not clipped)
         self.clipped_count = 0  # (neighbour, round) pairs clipped so far in this process (benchmarks count them)
         self.erratic_count = 0  # ... and found erratic
+        self.uncorrelated_count = 0  # ... and found unrelated to our model
 
     # --- the bound --------------------------------------------------------------------------
     def _base(self, own: Sequence[Tensor], movement: list[float] | None) -> list[float]:
@@ -132,18 +174,20 @@ class NeighbourClipper:
                 for t, b in enumerate(base)]
 
     @staticmethod
-    def _clip(own: Sequence[Tensor], theirs: Sequence[Tensor], dist: list[float], tau: list[float], for_dual: bool
-              ) -> tuple[list[Tensor], float]:
-        """The neighbour's tensors as they enter (the same tensors where within ``tau`` of ours),
-        and the smallest clip factor. The anchors take a clipped tensor at ``tau`` from ours; the
-        dual takes our own in its place (no increment): a clipped pull, integrated round after
-        round, would otherwise grow without bound in the dual."""
+    def _clip(own: Sequence[Tensor], theirs: Sequence[Tensor], dist: list[float], tau: list[float],
+              unrelated: list[bool], for_dual: bool) -> tuple[list[Tensor], float]:
+        """The neighbour's tensors as they enter (the same tensors where within ``tau`` of ours
+        and related to ours), and the smallest clip factor. The anchors take a clipped tensor at
+        ``tau`` from ours (an unrelated one: ours); the dual takes our own in its place (no
+        increment): a clipped pull, integrated round after round, would otherwise grow without
+        bound in the dual."""
         out, smallest = [], 1.0
-        for o, t, d, bound in zip(own, theirs, dist, tau):
-            if d <= bound:
+        for o, t, d, bound, odd in zip(own, theirs, dist, tau, unrelated):
+            if d <= bound and not odd:
                 out.append(t)
                 continue
-            factor = bound / d if d > 0 else 1.0  # d is inf for a model of 1e30s: factor 0, our own
+            # d is inf for a model of 1e30s, and an unrelated tensor carries nothing: factor 0, our own
+            factor = 0.0 if odd else bound / d if d > 0 else 1.0
             smallest = min(smallest, factor)
             out.append(o.clone() if for_dual or factor == 0 else o + (t - o) * factor)
         return out, smallest
@@ -159,7 +203,8 @@ class NeighbourClipper:
         used = {j: t for j, t in neighbours.items() if j not in self.quarantined}
         dist = {j: _distances(own, t) for j, t in used.items()}
         tau = self._tau or self._bound(self._base(own, None), list(dist.values()), None)
-        return {j: self._clip(own, t, dist[j], tau, for_dual=False)[0] for j, t in used.items()}
+        return {j: self._clip(own, t, dist[j], tau, _unrelated(own, t, self.cfg.min_correlation_z), for_dual=False)[0]
+                for j, t in used.items()}
 
     @torch.no_grad()
     def observe(self, own: Sequence[Tensor], neighbours: Mapping[int, Sequence[Tensor]],
@@ -174,17 +219,20 @@ class NeighbourClipper:
         own = [o.detach() for o in own]
         movement = None if self._prev_own is None else _distances(own, self._prev_own)
         dist = {j: _distances(own, t) for j, t in neighbours.items()}
-        votes = [d for j, d in dist.items() if j not in self.quarantined]
+        unrelated = {j: _unrelated(own, t, self.cfg.min_correlation_z) for j, t in neighbours.items()}
+        uncorrelated = {j for j, odd in unrelated.items() if any(odd)}
+        votes = [d for j, d in dist.items() if j not in self.quarantined and j not in uncorrelated]
         base = self._base(own, movement)
         tau = self._tau = self._bound(base, votes, movement)
         clipped, self.factors = {}, {}
         for j, theirs in neighbours.items():
-            clipped[j], self.factors[j] = self._clip(own, theirs, dist[j], tau, for_dual=True)
-            self.clipped_count += self.factors[j] < 1.0
+            clipped[j], self.factors[j] = self._clip(own, theirs, dist[j], tau, unrelated[j], for_dual=True)
+            self.clipped_count += self.factors[j] < 1.0 and j not in uncorrelated
+        self.uncorrelated_count += len(uncorrelated)
         erratic = self._erratic(neighbours, movement, rounds)
         self.erratic_count += len(erratic)
         self._remember_normal(votes, base, movement)
-        news = self._update_streaks(sorted(neighbours), erratic)
+        news = self._update_streaks(sorted(neighbours), erratic, uncorrelated)
         return {j: t for j, t in clipped.items() if j not in self.quarantined}, news
 
     def _erratic(self, neighbours: Mapping[int, Sequence[Tensor]], movement: list[float] | None,
@@ -220,15 +268,15 @@ class NeighbourClipper:
             normal.append(min(vote, b + 2 * (movement[t] if movement is not None else b)))
         self._normal.append(normal)
 
-    def _update_streaks(self, heard: list[int], erratic: set[int]) -> list[ClipNews]:
+    def _update_streaks(self, heard: list[int], erratic: set[int], uncorrelated: set[int]) -> list[ClipNews]:
         news: list[ClipNews] = []
-        odd = {j for j in heard if self.factors[j] < 1.0 or j in erratic}
+        odd = {j for j in heard if self.factors[j] < 1.0 or j in erratic}  # uncorrelated: factor 0
         within = [j for j in heard if j not in odd and j not in self.quarantined]
         for j in heard:
             factor = self.factors[j]
             if j in odd:
                 self.streak[j] = self.streak.get(j, 0) + 1
-                self.reason[j] = "clipped" if factor < 1.0 else "erratic"
+                self.reason[j] = "uncorrelated" if j in uncorrelated else "clipped" if factor < 1.0 else "erratic"
                 self.calm.pop(j, None)
             else:
                 self.streak.pop(j, None)

@@ -66,6 +66,10 @@ class Vigilance:
                 self.report.warn(f"robot {n.neighbour}'s model has not moved as a training robot's does for "
                                  f"{n.rounds} rounds in a row (standing still: a replay? jumping: noise?): "
                                  "a faulty or hostile robot?")
+            elif n.kind == "uncorrelated_neighbour":
+                self.report.warn(f"robot {n.neighbour}'s model is unrelated to ours (no correlation, as noise has; "
+                                 "honest robots share their initial weights): it is not let in (a faulty or hostile "
+                                 "robot, or one started with another init_seed?)")
             elif n.kind == "quarantined":
                 self.report.warn(f"robot {n.neighbour} is quarantined from round {round_index}: out of the anchors, "
                                  "duals and barrier until its model is within bound again")

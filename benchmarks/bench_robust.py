@@ -62,7 +62,7 @@ Tensors = dict[str, torch.Tensor]
 
 def _attack(kind: str, seed: int) -> Callable[[int, Tensors], Tensors]:
     """What the hostile robot's neighbours receive instead of its model of round k."""
-    g = torch.Generator().manual_seed(seed)
+    g = torch.Generator().manual_seed(seed + 7919)  # not the init_seed's stream: its draws would echo theta^0
     first: list[Tensors] = []
 
     def forge(k: int, theta: Tensors) -> Tensors:

@@ -41,9 +41,10 @@ from protocol.untrusted import describe
 SCHEMA_VERSION = 4
 
 #: Why a robot distrusts a neighbour (Status.suspects): its claimed round runs ahead of its pace,
-#: its models are clipped or move erratically (robust consensus), it is quarantined for that, or
+#: its models are clipped, move erratically or are unrelated to the robot's own (robust consensus),
+#: it is quarantined for that, or
 #: its snapshots are refused.
-SUSPICIONS = ("ahead_of_pace", "clipped", "erratic", "quarantined", "refused")
+SUSPICIONS = ("ahead_of_pace", "clipped", "erratic", "uncorrelated", "quarantined", "refused")
 
 #: Largest round / epoch number accepted (fits a signed 32-bit int on every platform).
 MAX_ROUND = 2**31 - 1
