@@ -32,6 +32,7 @@ from agent.consensus import ConsensusConfig  # noqa: E402
 from agent.data.loaders import load_views  # noqa: E402
 from agent.data.split import SplitConfig, split_views  # noqa: E402
 from agent.evaluation import EvalSet, evaluate_robot, train_baseline  # noqa: E402
+from agent.robust import RobustConfig  # noqa: E402
 from agent.swarm import Simulation, SwarmTrainingConfig  # noqa: E402
 from agent.trainer import CoarseToFineConfig, DepthConfig, TrainConfig  # noqa: E402
 from cli.config import apply_overrides  # noqa: E402
@@ -62,6 +63,13 @@ def score(trainer, evalset: EvalSet, robot_id: int) -> dict:
     return {k: round(v, 4) for k, v in e.summary().items()}
 
 
+def _suspected(sim: Simulation) -> dict[int, tuple[int, int, int]]:
+    """Per robot, how often robust consensus doubted an (honest) neighbour: with no doubt at all, its
+    models are bit for bit those of a run without it."""
+    return {i: (c.clipper.clipped_count, c.clipper.erratic_count, c.clipper.uncorrelated_count)
+            for i, t in sim.trainers.items() if (c := t.consensus) is not None}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default="procedural:views=100,width=64")
@@ -83,6 +91,8 @@ def main() -> None:
     ap.add_argument("--c2f", action="store_true", help="coarse-to-fine hash levels (BARF-style)")
     ap.add_argument("--depth-prior", default="none", choices=["none", "true", "scaled"])
     ap.add_argument("--depth-weight", type=float, default=0.0)
+    ap.add_argument("--robust", choices=["on", "off"], default="on",
+                    help="robust consensus (agent.robust; on is the default): off measures what it costs without an attack")
     ap.add_argument("--set", action="append", default=[], help="TrainConfig override, e.g. optim.lr=5e-3")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
@@ -98,7 +108,7 @@ def main() -> None:
         centre, _, _ = estimate_scene_box(views)
         views.meta["scene_box_world"] = {"center": centre.tolist(), "half_size": args.box_half_size}
     train = apply_overrides(TrainConfig(), args.set)
-    consensus = ConsensusConfig()
+    consensus = ConsensusConfig(robust=RobustConfig(enabled=args.robust == "on"))
     if args.rho is not None:
         consensus = dataclasses.replace(consensus, rho0=args.rho)
     if args.rho_growth is not None:
@@ -169,6 +179,7 @@ def main() -> None:
         from agent.consensus import disagreement
 
         rec["disagreement"] = dict(zip(ids, disagreement(thetas)))
+        rec["suspected"] = _suspected(sim)
         for i, tr in sim.trainers.items():
             rec["robots"][i] = score(tr, ev, i)
         results[mode] = rec
@@ -176,6 +187,9 @@ def main() -> None:
             f"robot {i}: all {s['psnr']:.2f}/{s['ssim']:.3f} others {s['psnr_others_only']:.2f}"
             + (f" rot {s['pose_rotation_deg']:.2f} deg t {s['pose_translation']:.4f}" if mode == "unknown" else "")
             for i, s in rec["robots"].items()) + f" ({rec['seconds']:.0f} s)", flush=True)
+        if rec["suspected"]:
+            print(f"  robust consensus {args.robust}: neighbours' models clipped / erratic / unrelated (a pair a round): "
+                  + ", ".join(f"robot {i} {c}/{e}/{u}" for i, (c, e, u) in rec["suspected"].items()), flush=True)
 
     print("\nsummary (PSNR dB all / others-only; pose error for unknown):")
     base = results.get("baseline", {}).get("all", {}).get("psnr")

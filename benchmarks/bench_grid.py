@@ -96,6 +96,11 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     views = load_views(SCENES[args.scene][0], width=SCENES[args.scene][1])
+    for v in args.variant or []:  # a misspelt key is one line now, not a traceback after the first model's run
+        try:
+            variant_config(args.scene, views, args.steps, v)
+        except ValueError as e:  # ConfigError, or a value out of range
+            raise SystemExit(f"--variant {v}: {e}") from None
     rows = [run_variant(args.scene, views, args.steps, args.every, v) for v in (args.variant or ["none"])]
     print(f"\n{args.scene}, {args.steps} steps:")
     for r in rows:
