@@ -9,9 +9,9 @@ buggy code. ATTACK, or several joined by ``+``:
 - ``future``: every heartbeat claims the swarm's last round, and its ``latest`` queryable answers
   with a valid snapshot of that round holding -10 times its model (a forged catch-up model);
 - ``nan``: its snapshots hold NaN (a broken encoder); it keeps heartbeating;
-- ``huge`` / ``minus_ten`` / ``replay`` / ``noise``: from round ``HOSTILE_FROM`` (1) on, it sends as
-  its own model 1e30 everywhere / -10 times its model / its model of that first round, every
-  round / Gaussian noise of each tensor's RMS;
+- ``noise`` / ``huge`` / ``minus_ten`` / ``replay``: from round ``HOSTILE_FROM`` (1) on, it sends as
+  its own model Gaussian noise of each tensor's RMS / 1e30 everywhere / -10 times its model / its
+  model of that first round, every round;
 - ``poison``: one of those per round, in that order, then ``replay`` to the end;
 - ``silent`` (a baseline, not an attack): it trains but sends nothing, neither snapshots nor
   heartbeats, and holds its liveliness token (a robot whose link died with its token alive).
@@ -32,7 +32,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
-POISONS = ("huge", "minus_ten", "noise", "replay")
+POISONS = ("noise", "huge", "minus_ten", "replay")
 ATTACKS = ("future", "nan", *POISONS, "poison", "silent")
 HOSTILE_FROM = int(os.environ.get("HOSTILE_FROM", "1"))  # the first round whose snapshot is forged
 
