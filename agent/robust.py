@@ -88,8 +88,7 @@ class RobustConfig:
 
     def __post_init__(self) -> None:
         check(self, clip_factor="> 1", window=">= 1", floor="> 0", move_band="> 1", min_correlation_z=">= 0",
-              report_after=">= 1",
-              readmit_after=">= 1")
+              report_after=">= 1", readmit_after=">= 1")
 
 
 @dataclass(frozen=True)

@@ -173,6 +173,10 @@ class Simulation:
         # Benchmarks only: the anchors (theta_i^k + theta_j^k) / 2 from the robot's exact theta_i^k
         # rather than its public copy, duals still on the public copies (no gain on lego: results.md)
         self.anchor_on_exact = False
+        # Tests and benchmarks of a hostile robot: ``forge(sender, round, public) -> what its
+        # neighbours receive instead`` (None: the public copy). The sender still anchors on its
+        # public copy, as a real robot that forges only what it sends does.
+        self.forge: Callable[[int, int, dict[str, Tensor]], dict[str, Tensor] | None] | None = None
         self.public: dict[int, dict[str, Tensor]] = {}
         self.neighbours = {i: sorted(neighbours[i]) for i in robots}
         self.reference_id = min(robots) if reference_id is None else reference_id
@@ -202,6 +206,8 @@ class Simulation:
             new = {i: self.wire(i, k + 1, theta) for i, theta in own.items()}
             if self.on_public:
                 self.public = new
+        if self.forge is not None:
+            new = {i: self.forge(i, k + 1, theta) or theta for i, theta in new.items()}
         for i, robot in self.robots.items():
             robot.trainer.end_round({j: new[j] for j in self.neighbours[i]}, own=self.public.get(i))
         self.thetas = new

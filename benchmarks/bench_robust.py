@@ -34,7 +34,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
-from typing import Callable, Mapping
+from typing import Callable
 
 import torch
 
@@ -80,30 +80,13 @@ def _attack(kind: str, seed: int) -> Callable[[int, Tensors], Tensors]:
     return forge
 
 
-class HostileWire:
-    """The daemons' wire (encode, decode, bases), with one sender's models replaced from a round on."""
-
-    def __init__(self, base: ProtocolWire, hostile: int, attack: Callable[[int, Tensors], Tensors] | None,
-                 attack_from: int) -> None:
-        self.base, self.hostile, self.attack, self.attack_from = base, hostile, attack, attack_from
-        self.sent_honestly: Tensors | None = None  # the hostile robot's real model, as it would have gone out
-
-    def __call__(self, sender: int, round_index: int, theta: Mapping[str, torch.Tensor]) -> Tensors:
-        got = self.base(sender, round_index, theta)
-        if sender != self.hostile or self.attack is None or round_index < self.attack_from:
-            return got
-        self.sent_honestly = got
-        return self.attack(round_index, got)
-
-    def keep_own_anchor(self, trainer) -> None:
-        """The hostile robot anchors its own consensus on its real model, as the real daemon with one
-        hostile change (it forges only what it sends) does; the simulation would hand it the forgery."""
-        def honest(method):
-            def call(*args, own=None, **kwargs):
-                return method(*args, own=self.sent_honestly if own is not None and self.sent_honestly else own,
-                              **kwargs)
-            return call
-        trainer.begin_round, trainer.end_round = honest(trainer.begin_round), honest(trainer.end_round)
+def hostile_forge(hostile: int, attack: Callable[[int, Tensors], Tensors], attack_from: int):
+    """``Simulation.forge``: one sender's models replaced, from a round on, in what its neighbours
+    receive (it anchors its own consensus on its real model, as the real daemon with one hostile
+    change does)."""
+    def forge(sender: int, round_index: int, theta: Tensors) -> Tensors | None:
+        return attack(round_index, theta) if sender == hostile and round_index >= attack_from else None
+    return forge
 
 
 def run_poison(attack: str, robust: bool, split, neighbours, cfg: SwarmTrainingConfig, ev: EvalSet, hostile: int,
@@ -115,10 +98,9 @@ def run_poison(attack: str, robust: bool, split, neighbours, cfg: SwarmTrainingC
     robust_cfg = dataclasses.replace(cfg.consensus.robust, enabled=robust)
     cfg = dataclasses.replace(cfg, consensus=dataclasses.replace(cfg.consensus, robust=robust_cfg))
     sim = Simulation({i: r.views for i, r in split.robots.items()}, neighbours, split.box_from_shared, cfg)
-    base = ProtocolWire(CompressionConfig(), next(iter(sim.thetas.values())), ids)
-    forge = None if attack in ("silent", "clean") else _attack(attack, seed)
-    sim.wire = HostileWire(base, hostile, forge, attack_from)
-    sim.wire.keep_own_anchor(sim.robots[hostile].trainer)
+    sim.wire = ProtocolWire(CompressionConfig(), next(iter(sim.thetas.values())), ids)
+    if attack not in ("silent", "clean"):
+        sim.forge = hostile_forge(hostile, _attack(attack, seed), attack_from)
     named: dict[int, int] = {}  # honest neighbour -> the round it first named the hostile robot
     false_clips = 0
 

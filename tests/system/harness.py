@@ -175,7 +175,7 @@ def simulate(swarm: Swarm, overrides: list[str] = (), compression=None, robots: 
     from agent.swarm import ProtocolWire
 
     wire = ProtocolWire(compression or cfg.daemon.exchange, next(iter(sim.thetas.values())), list(views))
-    sim.wire = wire if forge is None else (lambda i, k, theta: forge(i, k, wire(i, k, theta)))
+    sim.wire, sim.forge = wire, forge
     sim.run()
     return sim
 
