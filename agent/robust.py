@@ -33,9 +33,11 @@ jumps every round. One whose movement is outside ``move_band`` (4) of ours is er
 consensus pulls them together, so an honest neighbour's tensors correlate with ours (Pearson r of
 0.38-1.0 on the tests' scene, a z-score ``r sqrt(n)`` over 100 for the hash table); noise of the
 model's scale does not (z about N(0, 1)), whatever its distance, and -10 theta anticorrelates.
-A tensor of n >= (2 ``min_correlation_z``)^2 values whose z is under ``min_correlation_z`` enters
-as our own (as a clipped one at factor 0), and the neighbour is odd at once, as a gross clip is.
-Smaller tensors (biases) cannot show it and are not judged. The distance and movement tests
+Tensors of n >= (2 ``min_correlation_z``)^2 values are judged (biases are too small to show it):
+when most have a z under ``min_correlation_z``, the model enters as our own (as a clipped one at
+factor 0), and the neighbour is odd at once, as a gross clip is. Judged whole, not per tensor:
+an honest robot that trained apart for rounds was seen with its hash table anticorrelated with
+its neighbours' (z -97) while its decoders still correlated (z 22-32). The distance and movement tests
 scale with how fast the robots learn (noise of the model's scale passes both while the field
 learns fast); this one does not.
 
@@ -119,17 +121,18 @@ def _centred_unit(x: Tensor) -> Tensor | None:
 
 
 def _unrelated(own: Sequence[Tensor], theirs: Sequence[Tensor], min_z: float) -> list[bool]:
-    """Per tensor: is it large enough to tell and its correlation with ours under ``min_z``
-    standard errors? (A tensor with no spread, a constant, correlates with nothing.)"""
-    out = []
-    for o, t in zip(own, theirs):
-        if min_z == 0 or o.numel() < (2 * min_z) ** 2:
-            out.append(False)
-            continue
-        a, b = _centred_unit(o), _centred_unit(t)
+    """Per tensor, whether it enters as ours: all of them when most tensors large enough to tell
+    correlate with ours under ``min_z`` standard errors (a tensor with no spread, a constant,
+    correlates with nothing), none otherwise. A model is judged whole: an honest robot that
+    trained apart for many rounds can hold one tensor (its hash table, measured) that has drifted
+    from ours while its decoders still correlate; noise correlates nowhere."""
+    judged = [i for i, o in enumerate(own) if min_z > 0 and o.numel() >= (2 * min_z) ** 2]
+    failed = 0
+    for i in judged:
+        a, b = _centred_unit(own[i]), _centred_unit(theirs[i])
         r = 0.0 if a is None or b is None else float(a @ b)
-        out.append(r * o.numel() ** 0.5 < min_z)
-    return out
+        failed += r * own[i].numel() ** 0.5 < min_z
+    return [bool(judged) and failed * 2 > len(judged)] * len(own)
 
 
 class NeighbourClipper:
