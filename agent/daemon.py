@@ -209,7 +209,7 @@ class Daemon:
         self._model_changed()
         self._last_heard: dict[int, ThetaSnapshot] = {}
         self._round_compute_s: float | None = None  # our last round's training time: may we train through a gap?
-        self._recent_round_s: list[float] = []  # the last rounds' durations: the pace a neighbour may keep
+        self._recent_round_s: list[float] = []  # the last rounds' compute times: the pace a neighbour may keep
         self._moves: list[dict] = []  # joins and skips of this process, for done.json
         self.rejoin = Rejoin(RejoinPolicy(training.rounds, cfg.adopt_after_rounds, cfg.round_timeout_s,
                                           cfg.heartbeat_s), self.trainer, self.exchange, self.mailbox, self.report,
@@ -453,7 +453,9 @@ class Daemon:
                                rounds={j: m.round for j, m in heard.items()})
         if (consensus := self.trainer.consensus) is not None:
             self.vigilance.consensus_news(consensus.news, self.round)
-        self._recent_round_s = (self._recent_round_s + [time.monotonic() - t0])[-8:]
+        # A neighbour's pace is bounded by a round's compute, not by our barrier: a robot that waits
+        # out timeouts (restarted behind its neighbours) would otherwise disbelieve honest ones.
+        self._recent_round_s = (self._recent_round_s + [t_compute])[-8:]
         self.pace.min_round_s = min(self._recent_round_s) / self.cfg.pace_margin
         heard = self._catch_up(heard)
         self.mailbox.advance(self.round)  # slide the window: keeps accepting up to round + max_ahead
