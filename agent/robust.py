@@ -30,8 +30,8 @@ tests' scene, 0.93-1.07 on the quickstart's); a replayed old model does not move
 jumps every round. One whose movement is outside ``move_band`` (4) of ours is erratic.
 
 **A model unrelated to ours.** Every robot starts from the same theta^0 (``init_seed``) and
-consensus pulls them together, so an honest neighbour's tensors correlate with ours (Pearson r of
-0.38-1.0 on the tests' scene, a z-score ``r sqrt(n)`` over 100 for the hash table); noise of the
+consensus pulls them together, so an honest neighbour's model correlates with ours (Pearson r of
+0.3-1.0 per tensor in the benchmarks' runs, a z-score ``r sqrt(n)`` over 100 for the hash table); noise of the
 model's scale does not (z about N(0, 1)), whatever its distance, and -10 theta anticorrelates.
 Tensors of n >= (2 ``min_correlation_z``)^2 values are judged (biases are too small to show it):
 when most have a z under ``min_correlation_z``, the model enters as our own (as a clipped one at
@@ -121,9 +121,9 @@ def _centred_unit(x: Tensor) -> Tensor | None:
 
 
 def _unrelated(own: Sequence[Tensor], theirs: Sequence[Tensor], min_z: float) -> list[bool]:
-    """Per tensor, whether it enters as ours: all of them when most tensors large enough to tell
-    correlate with ours under ``min_z`` standard errors (a tensor with no spread, a constant,
-    correlates with nothing), none otherwise. A model is judged whole: an honest robot that
+    """Per tensor, whether it enters as ours: all of them when most of the tensors large enough to
+    tell correlate with ours by fewer than ``min_z`` standard errors (a tensor with no spread, a
+    constant, correlates with nothing), none otherwise. A model is judged whole: an honest robot that
     trained apart for many rounds can hold one tensor (its hash table, measured) that has drifted
     from ours while its decoders still correlate; noise correlates nowhere."""
     judged = [i for i, o in enumerate(own) if min_z > 0 and o.numel() >= (2 * min_z) ** 2]
