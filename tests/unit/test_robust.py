@@ -224,3 +224,20 @@ def test_a_model_is_judged_whole_one_drifted_tensor_is_no_noise():
         assert [n.kind for n in news] == (["uncorrelated_neighbour"] if unrelated else []) and not clipper.quarantined
         anchors = clipper.apply(step, {2: theirs})[2]
         assert all(torch.equal(a, (o if unrelated else t)) for a, o, t in zip(anchors, step, theirs)), unrelated
+
+
+def test_a_snapshot_standing_in_again_while_training_through_is_no_stall():
+    """Training through a gap, a neighbour's newer snapshot stands in round after round: the same
+    model of the same round is no movement to judge; a new round with the same model is."""
+    clipper = NeighbourClipper(RobustConfig(report_after=2), num_tensors=1)
+    own, theirs = [torch.zeros(10)], [torch.full((10,), 0.01)]
+    for k in range(4):
+        clipper.apply(own, {})
+        own = [own[0] + 0.01]
+        clipper.observe(own, {2: theirs, 3: [own[0] - 0.01]}, rounds={2: 7, 3: k + 1})
+    assert 2 not in clipper.streak
+    for k in range(4, 6):
+        clipper.apply(own, {})
+        own = [own[0] + 0.01]
+        clipper.observe(own, {2: theirs, 3: [own[0] - 0.01]}, rounds={2: k + 4, 3: k + 1})
+    assert clipper.reason.get(2) == "erratic" and clipper.streak[2] == 2  # rounds 7 -> 8 -> 9, standing still
