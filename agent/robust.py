@@ -120,19 +120,19 @@ def _centred_unit(x: Tensor) -> Tensor | None:
     return x / norm if norm > 0 else None
 
 
-def _unrelated(own: Sequence[Tensor], theirs: Sequence[Tensor], min_z: float) -> list[bool]:
-    """Per tensor, whether it enters as ours: all of them when most of the tensors large enough to
-    tell correlate with ours by fewer than ``min_z`` standard errors (a tensor with no spread, a
-    constant, correlates with nothing), none otherwise. A model is judged whole: an honest robot that
-    trained apart for many rounds can hold one tensor (its hash table, measured) that has drifted
-    from ours while its decoders still correlate; noise correlates nowhere."""
+def _unrelated(own: Sequence[Tensor], theirs: Sequence[Tensor], min_z: float) -> bool:
+    """Whether most of the tensors large enough to tell correlate with ours by fewer than ``min_z``
+    standard errors (a tensor with no spread, a constant, correlates with nothing). Judged whole:
+    an honest robot that trained apart for many rounds can hold one tensor (its hash table,
+    measured) that has drifted from ours while its decoders still correlate; noise correlates
+    nowhere."""
     judged = [i for i, o in enumerate(own) if min_z > 0 and o.numel() >= (2 * min_z) ** 2]
     failed = 0
     for i in judged:
         a, b = _centred_unit(own[i]), _centred_unit(theirs[i])
         r = 0.0 if a is None or b is None else float(a @ b)
         failed += r * own[i].numel() ** 0.5 < min_z
-    return [bool(judged) and failed * 2 > len(judged)] * len(own)
+    return bool(judged) and failed * 2 > len(judged)
 
 
 class NeighbourClipper:
@@ -177,19 +177,19 @@ class NeighbourClipper:
 
     @staticmethod
     def _clip(own: Sequence[Tensor], theirs: Sequence[Tensor], dist: list[float], tau: list[float],
-              unrelated: list[bool], for_dual: bool) -> tuple[list[Tensor], float]:
-        """The neighbour's tensors as they enter (the same tensors where within ``tau`` of ours
-        and related to ours), and the smallest clip factor. The anchors take a clipped tensor at
-        ``tau`` from ours (an unrelated one: ours); the dual takes our own in its place (no
+              unrelated: bool, for_dual: bool) -> tuple[list[Tensor], float]:
+        """The neighbour's tensors as they enter (the same tensors where within ``tau`` of ours),
+        and the smallest clip factor. The anchors take a clipped tensor at ``tau`` from ours (every
+        tensor of an unrelated model: ours); the dual takes our own in its place (no
         increment): a clipped pull, integrated round after round, would otherwise grow without
         bound in the dual."""
         out, smallest = [], 1.0
-        for o, t, d, bound, odd in zip(own, theirs, dist, tau, unrelated):
-            if d <= bound and not odd:
+        for o, t, d, bound in zip(own, theirs, dist, tau):
+            if d <= bound and not unrelated:
                 out.append(t)
                 continue
-            # d is inf for a model of 1e30s, and an unrelated tensor carries nothing: factor 0, our own
-            factor = 0.0 if odd else bound / d if d > 0 else 1.0
+            # d is inf for a model of 1e30s, and an unrelated model carries nothing: factor 0, our own
+            factor = 0.0 if unrelated else bound / d if d > 0 else 1.0
             smallest = min(smallest, factor)
             out.append(o.clone() if for_dual or factor == 0 else o + (t - o) * factor)
         return out, smallest
@@ -221,14 +221,13 @@ class NeighbourClipper:
         own = [o.detach() for o in own]
         movement = None if self._prev_own is None else _distances(own, self._prev_own)
         dist = {j: _distances(own, t) for j, t in neighbours.items()}
-        unrelated = {j: _unrelated(own, t, self.cfg.min_correlation_z) for j, t in neighbours.items()}
-        uncorrelated = {j for j, odd in unrelated.items() if any(odd)}
+        uncorrelated = {j for j, t in neighbours.items() if _unrelated(own, t, self.cfg.min_correlation_z)}
         votes = [d for j, d in dist.items() if j not in self.quarantined and j not in uncorrelated]
         base = self._base(own, movement)
         tau = self._tau = self._bound(base, votes, movement)
         clipped, self.factors = {}, {}
         for j, theirs in neighbours.items():
-            clipped[j], self.factors[j] = self._clip(own, theirs, dist[j], tau, unrelated[j], for_dual=True)
+            clipped[j], self.factors[j] = self._clip(own, theirs, dist[j], tau, j in uncorrelated, for_dual=True)
             self.clipped_count += self.factors[j] < 1.0 and j not in uncorrelated
         self.uncorrelated_count += len(uncorrelated)
         erratic = self._erratic(neighbours, movement, rounds)
