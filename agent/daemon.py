@@ -209,7 +209,7 @@ class Daemon:
         self._model_changed()
         self._last_heard: dict[int, ThetaSnapshot] = {}
         self._round_compute_s: float | None = None  # our last round's training time: may we train through a gap?
-        self._recent_round_s: list[float] = []  # the last rounds' compute times: the pace a neighbour may keep
+        self._recent_compute_s: list[float] = []  # the last rounds' compute times: the pace a neighbour may keep
         self._moves: list[dict] = []  # joins and skips of this process, for done.json
         self.rejoin = Rejoin(RejoinPolicy(training.rounds, cfg.adopt_after_rounds, cfg.round_timeout_s,
                                           cfg.heartbeat_s), self.trainer, self.exchange, self.mailbox, self.report,
@@ -455,8 +455,8 @@ class Daemon:
             self.vigilance.consensus_news(consensus.news, self.round)
         # A neighbour's pace is bounded by a round's compute, not by our barrier: a robot that waits
         # out timeouts (restarted behind its neighbours) would otherwise disbelieve honest ones.
-        self._recent_round_s = (self._recent_round_s + [t_compute])[-8:]
-        self.pace.min_round_s = min(self._recent_round_s) / self.cfg.pace_margin
+        self._recent_compute_s = (self._recent_compute_s + [t_compute])[-8:]
+        self.pace.min_round_s = min(self._recent_compute_s) / self.cfg.pace_margin
         heard = self._catch_up(heard)
         self.mailbox.advance(self.round)  # slide the window: keeps accepting up to round + max_ahead
         self._grow_summary()
