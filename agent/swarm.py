@@ -177,6 +177,8 @@ class Simulation:
         # neighbours receive instead`` (None: the public copy). The sender still anchors on its
         # public copy, as a real robot that forges only what it sends does.
         self.forge: Callable[[int, int, dict[str, Tensor]], dict[str, Tensor] | None] | None = None
+        # ... and of one that falls silent: robot -> the first round whose snapshot nobody hears
+        self.silent_from: dict[int, int] = {}
         self.public: dict[int, dict[str, Tensor]] = {}
         self.neighbours = {i: sorted(neighbours[i]) for i in robots}
         self.reference_id = min(robots) if reference_id is None else reference_id
@@ -199,7 +201,7 @@ class Simulation:
         stats = {}
         for i, robot in self.robots.items():
             anchor_own = None if self.anchor_on_exact else self.public.get(i)
-            robot.trainer.begin_round(k, {j: self.thetas[j] for j in self.neighbours[i]}, own=anchor_own)
+            robot.trainer.begin_round(k, {j: self.thetas[j] for j in self._heard(i, k)}, own=anchor_own)
             stats[i] = robot.trainer.train(self.cfg.steps_per_round)
         own = new = {i: r.trainer.theta() for i, r in self.robots.items()}
         if self.wire is not None:
@@ -209,12 +211,16 @@ class Simulation:
         if self.forge is not None:
             new = {i: self.forge(i, k + 1, theta) or theta for i, theta in new.items()}
         for i, robot in self.robots.items():
-            robot.trainer.end_round({j: new[j] for j in self.neighbours[i]}, own=self.public.get(i))
+            robot.trainer.end_round({j: new[j] for j in self._heard(i, k + 1)}, own=self.public.get(i))
         self.thetas = new
         self.round += 1
         ids = list(self.robots)
         dis = dict(zip(ids, disagreement([list(own[i].values()) for i in ids])))
         return {i: self._record(i, stats[i], dis[i]) for i in ids}
+
+    def _heard(self, i: int, round_index: int) -> list[int]:
+        """Robot i's neighbours whose snapshot of ``round_index`` reaches it."""
+        return [j for j in self.neighbours[i] if round_index < self.silent_from.get(j, round_index + 1)]
 
     def _record(self, i: int, stats: StepStats, disagreement_i: float) -> RoundRecord:
         T = self.robots[i].trainer.pose.matrix().detach().double().cpu()

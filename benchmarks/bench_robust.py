@@ -4,7 +4,8 @@
 code): one robot trains as usual but sends, as its own model, from ``--attack-from`` on:
 ``huge`` (every value 1e30), ``minus_ten`` (-10 theta), ``replay`` (its round-1 model, every
 round), ``noise`` (Gaussian noise of each tensor's RMS). The baseline is the same swarm with that
-robot ``silent`` (nobody hears it); ``clean`` is the swarm without any attack. Figures: the honest
+robot ``silent`` from the round its attack would begin (until then, it is the same robot in every
+run; ``absent``: nobody ever hears it); ``clean`` is the swarm without any attack. Figures: the honest
 robots' mean PSNR on the held-out views (all / others-only), its difference to the silent run,
 the round at which every honest neighbour of the hostile robot named it, and how often an honest
 neighbour was clipped or found erratic. ``--robust both`` also runs every attack with robust consensus off.
@@ -29,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import statistics
 import sys
@@ -93,13 +95,15 @@ def run_poison(attack: str, robust: bool, split, neighbours, cfg: SwarmTrainingC
                attack_from: int, seed: int) -> dict:
     t0 = time.time()
     ids = sorted(split.robots)
-    if attack == "silent":  # nobody hears the hostile robot, and it hears nobody
+    if attack == "absent":  # nobody hears the hostile robot, and it hears nobody
         neighbours = {i: set(nb) - {hostile} if i != hostile else set() for i, nb in neighbours.items()}
     robust_cfg = dataclasses.replace(cfg.consensus.robust, enabled=robust)
     cfg = dataclasses.replace(cfg, consensus=dataclasses.replace(cfg.consensus, robust=robust_cfg))
     sim = Simulation({i: r.views for i, r in split.robots.items()}, neighbours, split.box_from_shared, cfg)
     sim.wire = ProtocolWire(CompressionConfig(), next(iter(sim.thetas.values())), ids)
-    if attack not in ("silent", "clean"):
+    if attack == "silent":
+        sim.silent_from = {hostile: attack_from}
+    elif attack not in ("absent", "clean"):
         sim.forge = hostile_forge(hostile, _attack(attack, seed), attack_from)
     named: dict[int, int] = {}  # honest neighbour -> the round it first named the hostile robot
     false_clips = 0
@@ -120,15 +124,24 @@ def run_poison(attack: str, robust: bool, split, neighbours, cfg: SwarmTrainingC
     sim.run(on_round)
     honest = [i for i in ids if i != hostile]
     scores = {i: evaluate_robot(sim.trainers[i], ev, i).summary() for i in honest}
-    hostile_nb = sorted(j for j in honest if hostile in neighbours[j]) if attack not in ("silent", "clean") else []
+    hostile_nb = sorted(j for j in honest if hostile in neighbours[j]) if attack not in ("silent", "absent", "clean") else []
     return {
         "attack": attack, "robust": robust,
         "psnr": statistics.fmean(s["psnr"] for s in scores.values()),
         "psnr_others": statistics.fmean(s["psnr_others_only"] for s in scores.values()),
         "robots": {i: {"psnr": s["psnr"], "psnr_others_only": s["psnr_others_only"]} for i, s in scores.items()},
         "named_by": named, "named_round": max(named.values()) if hostile_nb and set(named) >= set(hostile_nb) else None,
-        "honest_clips": false_clips, "seconds": time.time() - t0,
+        "honest_clips": false_clips, "seconds": time.time() - t0, "honest_models": _digest(sim, honest),
     }
+
+
+def _digest(sim: Simulation, robots: list[int]) -> str:
+    """A hash of the honest robots' final models: equal hashes, bit-identical models."""
+    h = hashlib.sha256()
+    for i in robots:
+        for name, t in sorted(sim.trainers[i].theta().items()):
+            h.update(name.encode() + t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
 
 
 def part_poison(args) -> dict:
@@ -148,7 +161,7 @@ def part_poison(args) -> dict:
           f"{len(ev.views)} held-out views", flush=True)
     runs = []
     for attack in args.attacks.split(","):
-        for robust in ((True, False) if args.robust == "both" and attack not in ("silent", "clean")
+        for robust in ((True, False) if args.robust == "both" and attack not in ("silent", "absent", "clean")
                        else (args.robust != "off",)):
             r = run_poison(attack, robust, split, neighbours, cfg, ev, hostile, args.attack_from, args.seed)
             runs.append(r)
@@ -160,8 +173,10 @@ def part_poison(args) -> dict:
     for r in runs:
         diff = "" if silent is None else (f"  {r['psnr'] - silent['psnr']:+.2f} / "
                                           f"{r['psnr_others'] - silent['psnr_others']:+.2f} dB vs silent")
+        same = "" if silent is None or r is silent else (", honest models bit-identical to silent's"
+                                                          if r["honest_models"] == silent["honest_models"] else "")
         print(f"  {r['attack']:10s} robust {'on ' if r['robust'] else 'off'} {r['psnr']:.2f} / {r['psnr_others']:.2f}"
-              f"{diff}  named at round {r['named_round']}, honest suspected {r['honest_clips']}")
+              f"{diff}  named at round {r['named_round']}, honest suspected {r['honest_clips']}{same}")
     return {"runs": runs}
 
 

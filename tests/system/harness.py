@@ -154,11 +154,12 @@ def make_swarm(tmp: Path, robots: int = 3, topology: str = "full", frame: str = 
 
 
 def simulate(swarm: Swarm, overrides: list[str] = (), compression=None, robots: list[int] | None = None,
-             forge=None):
+             forge=None, silent_from: dict[int, int] | None = None):
     """The in-process simulation of the same swarm (same seeds), with 1 torch thread like the daemons;
     its snapshots go through the daemons' encode/decode with ``compression`` (a CompressionConfig;
     None: the swarm file's ``[daemon.exchange]``). ``robots``: only these (the others never
-    heard); ``forge(sender, round, theta) -> theta or None``: what a hostile sender sends instead."""
+    heard); ``forge(sender, round, theta) -> theta or None``: what a hostile sender sends instead;
+    ``silent_from``: robot -> the first round whose snapshot nobody hears."""
     import torch
 
     from agent.data.folder import read_scene
@@ -175,7 +176,7 @@ def simulate(swarm: Swarm, overrides: list[str] = (), compression=None, robots: 
     from agent.swarm import ProtocolWire
 
     wire = ProtocolWire(compression or cfg.daemon.exchange, next(iter(sim.thetas.values())), list(views))
-    sim.wire, sim.forge = wire, forge
+    sim.wire, sim.forge, sim.silent_from = wire, forge, dict(silent_from or {})
     sim.run()
     return sim
 
