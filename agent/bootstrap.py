@@ -141,10 +141,11 @@ class Bootstrap:
 
     def refresh_summary(self, stream: ViewStream) -> int:
         """Serve a summary of all the stream's training keyframes so far (its neighbours place
-        themselves against the places it has seen since, on their next query). -> points."""
+        themselves against the places it has seen since, on their next query); at most
+        ``summary_pool`` of them, spread over all, are read. -> points."""
         if self._msg is None:
             return 0  # the coarse step has not run yet: it summarises what there is then
-        views = stream.initial_views(self._summary_width)
+        views = stream.spread_views(self.align.summary_pool, self._summary_width)
         self._own, self._msg = self._summarise(views)
         size = self._serve_summary()
         self.report.event("keyframes", bytes=size, image_bytes=self._msg.image_bytes, points=len(self._own),

@@ -116,6 +116,22 @@ def optical_axis(c2w):
     return -c2w[..., :3, 2]
 
 
+def spread_views(c2w: np.ndarray, k: int) -> list[int]:
+    """Of cameras c2w [M, 4, 4], the indices of K spread over positions and viewing directions
+    (farthest-point sampling, deterministic; all M if fewer)."""
+    centres = c2w[:, :3, 3]
+    spread = float(np.linalg.norm(centres - centres.mean(0), axis=1).mean()) or 1.0
+    feats = np.concatenate([centres / spread, optical_axis(c2w)], 1)  # scale-free: [M, 6]
+    first = int(np.argmin(np.linalg.norm(feats - feats.mean(0), axis=1)))
+    chosen = [first]
+    dist = np.linalg.norm(feats - feats[first], axis=1)
+    while len(chosen) < min(k, len(c2w)):
+        nxt = int(np.argmax(dist))
+        chosen.append(nxt)
+        dist = np.minimum(dist, np.linalg.norm(feats - feats[nxt], axis=1))
+    return sorted(chosen)
+
+
 def camera_directions(intrinsics, u, v, distortion: tuple[float, float, float, float] | None = None):
     """Directions through pixel positions in the camera frame, scaled to z = -1 (not unit length).
 

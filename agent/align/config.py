@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+from agent.config_io import check
+
 __all__ = ["AlignConfig"]
 
 
@@ -16,6 +18,9 @@ class AlignConfig:
     num_keyframes: int = 48  # K keyframes spread over the robot's views (all views if fewer): more
     # viewpoints match more of a neighbour's views; the byte budget still caps the payload
     max_bytes: int = 256_000  # cap on the payload: P <= max_bytes // 144
+    # a robot that keeps mapping summarises this many of its keyframes, spread over them: its
+    # keyframes and their triangulation partners (num_keyframes x (1 + neighbours_per_keyframe))
+    summary_pool: int = 240
     sift_features: int = 2000  # SIFT detections per image
     sift_contrast: float = 0.02  # OpenCV contrastThreshold (lower = more features on flat CGI)
     neighbours_per_keyframe: int = 4  # own views matched to a keyframe to triangulate its features
@@ -53,6 +58,9 @@ class AlignConfig:
     null_factor: float = 2.0  # inliers must be >= this x the best count on shuffled matches
     min_spread: float = 0.1  # inliers' 2nd principal std must be >= this x the scene radius
     scale_range: tuple[float, float] = (1e-3, 1e3)
+
+    def __post_init__(self) -> None:
+        check(self, num_keyframes=">= 1", summary_pool=">= 1")
 
     @property
     def sim3(self) -> bool:

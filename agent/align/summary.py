@@ -11,7 +11,7 @@ from agent.align.features import OwnViews
 from agent.align.keypoints import pack_keyframe_cameras
 from agent.align.payload import BYTES_PER_POINT, DESC_DIM, Summary
 from agent.align.placement import place_keyframe_features
-from agent.camera import optical_axis
+from agent.camera import spread_views
 from agent.data.views import Views
 
 __all__ = ["summarise"]
@@ -28,7 +28,7 @@ def summarise(views: Views, points_source: Literal["auto", "depth", "triangulate
     """
     source = _choose_source(views, points_source, cfg)
     own = OwnViews(views, cfg)
-    keys = _farthest_views(own.c2w, cfg.num_keyframes)
+    keys = spread_views(own.c2w, cfg.num_keyframes)
     use_depth = source == "depth" and own.depth is not None
     stats = {"depth": 0, "triangulated": 0, "candidates": 0}
     parts = []  # per keyframe with features: (descriptors, points, keyframe slot, keypoints, rank)
@@ -56,21 +56,6 @@ def _choose_source(views: Views, points_source: str, cfg: AlignConfig) -> str:
         return "triangulate"
     dense = float((views.depth > 0).float().mean()) >= cfg.depth_dense_fraction
     return "depth" if dense else "triangulate"
-
-
-def _farthest_views(c2w: np.ndarray, k: int) -> list[int]:
-    """K views spread over positions and viewing directions (farthest-point sampling, deterministic)."""
-    centres = c2w[:, :3, 3]
-    spread = float(np.linalg.norm(centres - centres.mean(0), axis=1).mean()) or 1.0
-    feats = np.concatenate([centres / spread, optical_axis(c2w)], 1)  # scale-free: [M, 6]
-    first = int(np.argmin(np.linalg.norm(feats - feats.mean(0), axis=1)))
-    chosen = [first]
-    dist = np.linalg.norm(feats - feats[first], axis=1)
-    while len(chosen) < min(k, len(c2w)):
-        nxt = int(np.argmax(dist))
-        chosen.append(nxt)
-        dist = np.minimum(dist, np.linalg.norm(feats - feats[nxt], axis=1))
-    return sorted(chosen)
 
 
 def _within_budget(views: Views, own: OwnViews, keys: list[int], parts: list, cfg: AlignConfig, meta: dict) -> Summary:

@@ -41,6 +41,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from agent.camera import spread_views
 from agent.config_io import InvalidValue, check
 from agent.data.folder import matrix_to_list, write_png
 from agent.data.images import read_image, resize_image, target_size
@@ -325,11 +326,19 @@ class ViewStream:
                      meta={"format": "stream", "source": str(self.store.folder)})
 
     def initial_views(self, width: int | None = 0) -> Views:
-        """The training keyframes admitted so far, in memory: the box, the summary, the first rows.
+        """The training keyframes admitted so far, in memory: the box, the first summary, the first rows.
         ``width``: 0 the training width, None the camera's own (the keyframe summary's sharper copy)."""
+        return self._views(self._rows, self._summary_size(width))
+
+    def spread_views(self, limit: int, width: int | None = 0) -> Views:
+        """At most ``limit`` training keyframes, spread over positions and viewing directions: the
+        summary of a robot that keeps mapping reads a bounded few however many it has."""
+        c2w = np.array([f["transform_matrix"] for f in self._rows], dtype=np.float64).reshape(-1, 4, 4)
+        return self._views([self._rows[i] for i in spread_views(c2w, limit)], self._summary_size(width))
+
+    def _summary_size(self, width: int | None) -> tuple[int, int] | None:
         cam = self.store.camera
-        size = None if width == 0 else target_size(int(cam["w"]), int(cam["h"]), width, "daemon.summary_width")
-        return self._views(self._rows, size)
+        return None if width == 0 else target_size(int(cam["w"]), int(cam["h"]), width, "daemon.summary_width")
 
     def holdout_views(self) -> Views | None:
         """Up to ``eval_views`` held-out keyframes spread over all of them (the log line's PSNR)."""

@@ -145,6 +145,13 @@ def test_memory_is_bounded_and_every_keyframe_comes_back(tmp_path):
         assert len(set(int(r) for r in stream._slot_row)) <= 8
     assert seen == set(range(40))  # the old ones come back in turn
     assert int(stream._slot_row.max()) == 39 and 38 in stream._slot_row.tolist()  # the newest stay in
+    # the keyframe summary (served again as they grow) reads a bounded few, spread from first to last
+    spread = stream.spread_views(6, width=None)
+    xs = sorted(float(c[0, 3]) for c in spread.c2w)
+    all_xs = sorted(float(f["transform_matrix"][0][3]) for f in stream._rows)
+    assert len(spread.names) == 6 and spread.images.shape[2] == stream.store.camera["w"]
+    assert [xs[0], xs[-1]] == pytest.approx([all_xs[0], all_xs[-1]], abs=1e-5) and all_xs[-1] - all_xs[0] > 1
+    assert len(stream.spread_views(100).names) == 40
 
 
 @pytest.mark.parametrize("sampling", ["recency", "uniform"])
