@@ -10,7 +10,9 @@
    frames, 400 ms, more), -> admitted by the trainer (written to keyframes/, taken at the next
    step: up to one step later).
 2. Memory. One process per size: N keyframes (160x120) admitted into a view stream while a small
-   trainer trains, against the same N views held in memory as a loaded folder is. Peak RSS.
+   trainer trains, then the keyframe summary served again (from a pool spread over them; and, for
+   comparison, from every keyframe), against the same N views held in memory as a loaded folder
+   is. Peak RSS.
 3. Sampling on a growing set (``--sampling``): the procedural object's views arrive in capture
    order, a few per round, while one robot trains; ``recency`` against ``uniform`` at the same
    steps and seed, and all views given at start (offline). PSNR on every held-out view at the
@@ -113,6 +115,8 @@ def memory_child(n: int, mode: str, width: int, height: int, steps_every: int) -
     import numpy as np
     import torch
 
+    from agent.align.config import AlignConfig
+    from agent.align.summary import summarise
     from agent.data.ros.intake import Keyframe
     from agent.data.stream import StreamConfig, ViewStream
     from agent.data.views import Views
@@ -131,7 +135,7 @@ def memory_child(n: int, mode: str, width: int, height: int, steps_every: int) -
     training = SwarmTrainingConfig(rounds=1, steps_per_round=1, own_holdout_every=0, train=_small_field(width))
     box = box_from_center(torch.zeros(3), torch.tensor(float(n) * 0.05 + 1))
     t0 = time.monotonic()
-    if mode == "stream":
+    if mode.startswith("stream"):
         with tempfile.TemporaryDirectory() as tmp:
             stream = ViewStream(StreamConfig(), _NoIntake(), Path(tmp) / "keyframes", None, 0, n)
             stream._admit([keyframe(i) for i in range(4)])
@@ -141,6 +145,10 @@ def memory_child(n: int, mode: str, width: int, height: int, steps_every: int) -
                 stream._admit([keyframe(i)])
                 if i % steps_every == 0:
                     setup.trainer.train(2)
+            # the keyframe summary served again as they grow, from the camera's full-size images: of a
+            # spread pool (agent.bootstrap.refresh_summary), or of every keyframe (before the pool)
+            summarise(stream.initial_views(None) if mode == "stream-all" else
+                      stream.spread_views(AlignConfig().summary_pool, None))
     else:  # every view in memory, as a folder loaded at start
         kfs = [keyframe(i) for i in range(n)]
         views = Views(torch.from_numpy(np.stack([kf.image for kf in kfs])),
@@ -263,14 +271,15 @@ def main() -> None:
     print("peak RSS as keyframes grow (160x120, training meanwhile):")
     for n in [int(x) for x in a.sizes.split(",")]:
         row = {}
-        for mode in ("stream", "in-memory"):
+        for mode in ("stream", "stream-all", "in-memory"):
             out = subprocess.run([sys.executable, __file__, "--child", f"{n}:{mode}"], capture_output=True, text=True,
                                  timeout=3600)
             if out.returncode != 0:
                 raise SystemExit(out.stderr)
             row[mode] = json.loads(out.stdout.strip().splitlines()[-1])
-        print(f"  {n:5d} keyframes: stream {row['stream']['peak_rss_mb']:.0f} MB "
-              f"({row['stream']['seconds']:.0f} s), all in memory {row['in-memory']['peak_rss_mb']:.0f} MB")
+        print(f"  {n:5d} keyframes: stream {row['stream']['peak_rss_mb']:.0f} MB ({row['stream']['seconds']:.0f} s; "
+              f"summarising every keyframe instead of a pool: {row['stream-all']['peak_rss_mb']:.0f} MB), "
+              f"all in memory {row['in-memory']['peak_rss_mb']:.0f} MB")
 
 
 if __name__ == "__main__":
