@@ -17,7 +17,9 @@ i's own movement in its first round stands for (a). The normal of a round is its
 one), but at most the normal before it plus twice i's own movement: it follows honest robots as
 they learn, while a model far outside cannot raise the bar by itself. Per tensor,
 because a tensor's scale is its own (a hash table and an MLP bias differ by orders of
-magnitude), and adaptive, because disagreement grows and shrinks as the robots learn.
+magnitude), and adaptive, because disagreement grows and shrinks as the robots learn. Tensors
+of fewer than ``SMALL_TENSOR`` values (biases) are measured together, as one: so few values are
+no evidence of anything (``SMALL_TENSOR``'s comment says what they did on lego).
 
 Nothing changes without an attack: an honest neighbour within the bound enters exactly as
 before (the same tensors, bit for bit), so the figures of every honest run stay what they were.
@@ -103,8 +105,28 @@ class ClipNews:
     factor: float  # the smallest clip factor over its tensors this round (1.0: within bound)
 
 
-def _distances(own: Sequence[Tensor], theirs: Sequence[Tensor]) -> list[float]:
-    return [float(torch.linalg.vector_norm(t - o)) for o, t in zip(own, theirs)]
+# A tensor of fewer values is judged with the model's other small ones, as one: the distance of a
+# 3-value output bias swung 7-21x between a robot's two honest neighbours on lego-5-ring (over
+# 3-4 rounds in a row: four honest robots were quarantined), the biases pooled at most 2.1x.
+SMALL_TENSOR = 100
+
+
+def _distances(own: Sequence[Tensor], theirs: Sequence[Tensor], pooled: bool = True) -> list[float]:
+    """Per tensor ``||theirs - own||``; ``pooled``: every small tensor's is the small ones' joint distance."""
+    d = [float(torch.linalg.vector_norm(t - o)) for o, t in zip(own, theirs)]
+    return _pool_small(d, own) if pooled else d
+
+
+def _whole(a: Sequence[Tensor], b: Sequence[Tensor]) -> float:
+    """``||b - a||`` over all tensors."""
+    return sum(d * d for d in _distances(a, b, pooled=False)) ** 0.5
+
+
+def _pool_small(values: list[float], tensors: Sequence[Tensor]) -> list[float]:
+    """Norms per tensor -> the same, with each tensor under SMALL_TENSOR values given the small ones' joint norm."""
+    small = [i for i, t in enumerate(tensors) if t.numel() < SMALL_TENSOR]
+    joint = sum(values[i] ** 2 for i in small) ** 0.5
+    return [joint if i in small else v for i, v in enumerate(values)]
 
 
 def _centred_unit(x: Tensor) -> Tensor | None:
@@ -160,11 +182,12 @@ class NeighbourClipper:
         """The normal disagreement per tensor before this round's vote: the largest remembered
         over the window; on a cold start, our own movement this round; at least the floor."""
         base = []
-        for t, o in enumerate(own):
+        norms = _pool_small([float(torch.linalg.vector_norm(o)) for o in own], own)
+        for t in range(len(own)):
             normal = max((n[t] for n in self._normal), default=0.0)
             if not self._normal and movement is not None:  # a cold start: nothing else to go by
                 normal = movement[t]
-            base.append(max(normal, self.cfg.floor * float(torch.linalg.vector_norm(o))))
+            base.append(max(normal, self.cfg.floor * norms[t]))
         return base
 
     def _bound(self, base: list[float], votes: list[list[float]], movement: list[float] | None) -> list[float]:
@@ -230,25 +253,25 @@ class NeighbourClipper:
             clipped[j], self.factors[j] = self._clip(own, theirs, dist[j], tau, j in uncorrelated, for_dual=True)
             self.clipped_count += self.factors[j] < 1.0 and j not in uncorrelated
         self.uncorrelated_count += len(uncorrelated)
-        erratic = self._erratic(neighbours, movement, rounds)
+        erratic = self._erratic(neighbours, None if self._prev_own is None else _whole(own, self._prev_own), rounds)
         self.erratic_count += len(erratic)
         self._remember_normal(votes, base, movement)
         news = self._update_streaks(sorted(neighbours), erratic, uncorrelated)
         return {j: t for j, t in clipped.items() if j not in self.quarantined}, news
 
-    def _erratic(self, neighbours: Mapping[int, Sequence[Tensor]], movement: list[float] | None,
+    def _erratic(self, neighbours: Mapping[int, Sequence[Tensor]], ours: float | None,
                  rounds: Mapping[int, int] | None) -> set[int]:
         """Neighbours whose model moved, from its round heard at the last observation to the
-        next, outside ``move_band`` of our own movement in the round. (A snapshot that stands in
-        for a later round again, while we train through a gap, is no movement to judge.)"""
-        ours = None if movement is None else sum(m * m for m in movement) ** 0.5
+        next, outside ``move_band`` of ``ours``, our own movement in the round (whole models).
+        (A snapshot that stands in for a later round again, while we train through a gap, is no
+        movement to judge.)"""
         erratic = set()
         for j, theirs in neighbours.items():
             seen = self._seen.get(j)
             now = None if rounds is None else rounds.get(j)
             if seen is None or not ours or (now is not None and seen[0] is not None and now != seen[0] + 1):
                 continue
-            ratio = sum(d * d for d in _distances(seen[1], theirs)) ** 0.5 / ours
+            ratio = _whole(seen[1], theirs) / ours
             if not 1 / self.cfg.move_band <= ratio <= self.cfg.move_band:
                 erratic.add(j)
         self._seen = {j: (None if rounds is None else rounds.get(j), [t.detach().clone() for t in theirs])

@@ -207,6 +207,27 @@ def test_noise_inside_the_normal_disagreement_is_told_by_its_correlation(min_z):
         assert told == [] and all(anchored) and clipper.clipped_count == 0
 
 
+def test_a_tiny_tensor_far_from_one_honest_neighbour_is_no_evidence():
+    """lego-5-ring: a robot's 3-value output bias lay 7-21x further from one honest neighbour's
+    than from the other's for rounds on end, and four honest robots were quarantined. Small
+    tensors are judged together (there: at most 2.1x); a gross value in one is still clipped."""
+    g = torch.Generator().manual_seed(5)
+    own = [torch.randn(4000, generator=g), torch.randn(64, generator=g), torch.randn(3, generator=g)]
+    clipper = NeighbourClipper(RobustConfig(), num_tensors=3)
+    heard: dict = {}
+    for k in range(8):
+        clipper.apply(own, heard)
+        own = [o + 0.05 * torch.randn(o.shape, generator=g) for o in own]
+        near = [o + 0.02 * torch.randn(o.shape, generator=g) for o in own]
+        far = near[:2] + [own[2] + 8 * (near[2] - own[2])]
+        heard = {2: near, 3: far}
+        _, news = clipper.observe(own, heard)
+        assert not news and clipper.factors == {2: 1.0, 3: 1.0}, (k, clipper.factors)
+    gross = far[:2] + [torch.full((3,), 1e3)]
+    clipper.observe(own, {2: near, 3: gross})
+    assert clipper.factors[3] < 1e-2 and clipper.factors[2] == 1.0
+
+
 def test_a_model_is_judged_whole_one_drifted_tensor_is_no_noise():
     """With one neighbour nothing is quarantined, so an unrelated model enters the anchors as ours;
     a model of which one tensor has drifted (an honest robot that trained apart: its table seen
