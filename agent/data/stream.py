@@ -328,15 +328,16 @@ class ViewStream:
     def initial_views(self, width: int | None = 0) -> Views:
         """The training keyframes admitted so far, in memory: the box, the first summary, the first rows.
         ``width``: 0 the training width, None the camera's own (the keyframe summary's sharper copy)."""
-        return self._views(self._rows, self._summary_size(width))
+        return self._views(self._rows, self._size_for(width))
 
     def spread_views(self, limit: int, width: int | None = 0) -> Views:
         """At most ``limit`` training keyframes, spread over positions and viewing directions: the
         summary of a robot that keeps mapping reads a bounded few however many it has."""
         c2w = np.array([f["transform_matrix"] for f in self._rows], dtype=np.float64).reshape(-1, 4, 4)
-        return self._views([self._rows[i] for i in spread_views(c2w, limit)], self._summary_size(width))
+        return self._views([self._rows[i] for i in spread_views(c2w, limit)], self._size_for(width))
 
-    def _summary_size(self, width: int | None) -> tuple[int, int] | None:
+    def _size_for(self, width: int | None) -> tuple[int, int] | None:
+        """0: None (the training size); None: the camera's own; else that width."""
         cam = self.store.camera
         return None if width == 0 else target_size(int(cam["w"]), int(cam["h"]), width, "daemon.summary_width")
 
