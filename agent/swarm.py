@@ -231,7 +231,7 @@ class Simulation:
             samples_per_ray=stats.samples_per_ray, pose=T.tolist(), pose_rotation_deg=pose["rotation_deg"],
             pose_translation=pose["translation"], pose_scale=pose["scale"], reference=self.reference_id,
             elected=i == self.reference_id, live_neighbours=self.neighbours[i], reachable=self.neighbours[i],
-            heard=self.neighbours[i], seconds_compute=stats.seconds, steps=stats.steps,
+            heard=self._heard(i, self.round), seconds_compute=stats.seconds, steps=stats.steps,
             seconds_per_step=stats.seconds / max(stats.steps, 1), disagreement=disagreement_i)
 
     def run(self, on_round: Callable[[dict[int, RoundRecord]], None] | None = None) -> list[dict[int, RoundRecord]]:
