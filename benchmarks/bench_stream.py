@@ -9,7 +9,8 @@
    window 1, so a keyframe waits for no later frame; with the default window of 5 it waits ~4
    frames, 400 ms, more), -> admitted by the trainer (written to keyframes/, taken at the next
    step: up to one step later).
-2. Memory. One process per size: N keyframes (160x120) admitted into a view stream while a small
+2. Memory. One process per size: N keyframes (160x120, a camera circling one place, so the scene
+   and its box stay the same size) admitted into a view stream while a small
    trainer trains, then the keyframe summary served again (from a pool spread over them; and, for
    comparison, from every keyframe), against the same N views held in memory as a loaded folder
    is. Peak RSS.
@@ -120,7 +121,7 @@ def memory_child(n: int, mode: str, width: int, height: int, steps_every: int) -
     from agent.data.ros.intake import Keyframe
     from agent.data.stream import StreamConfig, ViewStream
     from agent.data.views import Views
-    from agent.geometry import box_from_center
+    from agent.geometry import box_from_center, look_at
     from agent.swarm import SwarmTrainingConfig, build_robot
 
     torch.set_num_threads(1)
@@ -128,12 +129,15 @@ def memory_child(n: int, mode: str, width: int, height: int, steps_every: int) -
     k = (width * 0.8, width * 0.8, width / 2, height / 2)
 
     def keyframe(i: int) -> Keyframe:
-        c2w = np.eye(4)
-        c2w[0, 3] = 0.05 * i
+        # a robot that patrols one place: the keyframes grow, the scene and its box do not (a box that
+        # grew with them would measure a larger scene's training step, not the data held)
+        a = 2 * np.pi * i / 97
+        eye = torch.tensor([2 * np.cos(a), 2 * np.sin(a), 0.5 + 0.2 * np.sin(7 * a)])
+        c2w = look_at(eye, torch.zeros(3), torch.tensor([0.0, 0.0, 1.0])).numpy()
         return Keyframe(f"frame_{i:06d}", rng.random((height, width, 3), dtype=np.float32), c2w, k, i, time.time_ns())
 
     training = SwarmTrainingConfig(rounds=1, steps_per_round=1, own_holdout_every=0, train=_small_field(width))
-    box = box_from_center(torch.zeros(3), torch.tensor(float(n) * 0.05 + 1))
+    box = box_from_center(torch.zeros(3), torch.tensor(3.0))
     t0 = time.monotonic()
     if mode.startswith("stream"):
         with tempfile.TemporaryDirectory() as tmp:
@@ -160,7 +164,8 @@ def memory_child(n: int, mode: str, width: int, height: int, steps_every: int) -
         for i in range(4, n):
             if i % steps_every == 0:
                 setup.trainer.train(2)
-    return {"keyframes": n, "mode": mode, "peak_rss_mb": _peak_rss_mb(), "seconds": time.monotonic() - t0}
+    return {"keyframes": n, "mode": mode, "peak_rss_mb": _peak_rss_mb(), "seconds": time.monotonic() - t0,
+            "samples_per_ray": setup.trainer.samples_per_ray}
 
 
 def _peak_rss_mb() -> float:
@@ -279,7 +284,8 @@ def main() -> None:
             row[mode] = json.loads(out.stdout.strip().splitlines()[-1])
         print(f"  {n:5d} keyframes: stream {row['stream']['peak_rss_mb']:.0f} MB ({row['stream']['seconds']:.0f} s; "
               f"summarising every keyframe instead of a pool: {row['stream-all']['peak_rss_mb']:.0f} MB), "
-              f"all in memory {row['in-memory']['peak_rss_mb']:.0f} MB")
+              f"all in memory {row['in-memory']['peak_rss_mb']:.0f} MB ({row['in-memory']['seconds']:.0f} s); samples "
+              f"a ray at the end {row['stream']['samples_per_ray']:.0f} / {row['in-memory']['samples_per_ray']:.0f}")
 
 
 if __name__ == "__main__":

@@ -1,7 +1,9 @@
 """`up --replay`: a robot trains while its bag plays at its recorded pace, its views growing round by round.
 
 The bag is recorded here from the procedural scene (agent.data.ros.record) and played at 0.08x
-its pace, so that keyframes keep arriving over the first rounds. The real `up` runs it; then it
+its pace, every moving frame a keyframe (sharpness window 1): one every 1.25 s, so that some arrive
+during the rounds on a fast machine too (with the default window of 5, one came every ~6 s, and a
+fast machine trained all 5 rounds on the 3 it started from). The real `up` runs it; then it
 is started again with one more round: it resumes with the keyframes it had, none added twice.
 """
 
@@ -27,7 +29,7 @@ SMALL = ["--set", "training.train.rays_per_step=512", "--set", "training.train.f
          "--set", "training.train.field.color_hidden=32", "--set", "training.train.occupancy.resolution=32",
          "--set", "training.own_holdout_every=4", "--set", "training.image_width=32",
          "--set", "data.stream.start_keyframes=3", "--set", "data.stream.capacity=64",
-         "--set", "daemon.realign_every=1"]
+         "--set", "daemon.realign_every=1", "--set", "data.ros.keyframes.sharpness_window=1"]
 
 
 def _up(tmp: Path, env: dict, *extra: str) -> tuple[int, str]:
