@@ -144,6 +144,12 @@ def train_centralised(dataset: str, width: int | None, training: SwarmTrainingCo
                              seconds=time.monotonic() - t, views=len(scores["psnr"]), renders=_uint8(renders))
 
 
+def swarm_box(run: SwarmRun, reference_id: int) -> torch.Tensor | None:
+    """The field box the swarm trained in (the reference's checkpoint's; [4, 4] float64), or None."""
+    ck = run.folder(reference_id).load(reference_id)
+    return None if ck is None else ck.box_from_shared.double()
+
+
 def train_centralised_on_robots(run: SwarmRun, training: SwarmTrainingConfig, steps: int,
                                 with_ssim: bool = True) -> CentralisedScores:
     """The centralised model on exactly the frames the robots trained on (a bag's keyframes, their own
@@ -164,10 +170,8 @@ def train_centralised_on_robots(run: SwarmRun, training: SwarmTrainingConfig, st
                   torch.cat([p.intrinsics for p in parts]), [n for p in parts for n in p.names])
     cfg = replace(training.train, total_steps=steps, seed=training.seed, init_seed=training.seed,
                   cameras=replace(training.train.cameras, enabled=False))
-    reference = run.folder(evalset.reference_id).load(evalset.reference_id)
-    if reference is not None:
-        box = reference.box_from_shared.double()
-    else:  # no checkpoint of the reference: a box of these views
+    box = swarm_box(run, evalset.reference_id)
+    if box is None:  # no checkpoint of the reference: a box of these views
         center, half, _ = estimate_scene_box(views, cfg.field.unbounded)
         box = box_from_center(center, half)
     trainer = RobotTrainer(views, replace(cfg, pose=replace(cfg.pose, mode="fixed")), box)

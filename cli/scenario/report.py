@@ -159,7 +159,8 @@ def _baselines(spec: ScenarioSpec, run: SwarmRun, echo: Callable[[str], None]) -
     key = baseline_key({"dataset": dataset_fingerprint(spec.resolved_dataset()), "width": spec.width,
                         "training": to_dict(spec.training), "split": split, "steps": steps,
                         "alone": spec.baseline.alone, "ssim": spec.report.ssim, "robots": spec.ids,
-                        "record": to_dict(spec.record) if spec.record.enabled else None})
+                        "record": to_dict(spec.record) if spec.record.enabled else None,
+                        "box": _swarm_box(run) if spec.record.enabled else None})
     if spec.baseline.reuse and (cached := load_cached(key)) is not None:
         echo(f"baseline: the same models on the same data and code were trained before: reused (cache {key})")
         return cached, True
@@ -168,6 +169,16 @@ def _baselines(spec: ScenarioSpec, run: SwarmRun, echo: Callable[[str], None]) -
                               with_ssim=spec.report.ssim, echo=echo, on_robots_frames=spec.record.enabled)
     store_cached(key, baselines)
     return baselines, False
+
+
+def _swarm_box(run: SwarmRun) -> list | None:
+    """The box a recorded run's centralised model trains in (the swarm's: it may differ between runs
+    of the same inputs, e.g. from the first keyframes of a replay), for the baselines' cache key."""
+    from agent.evaluation.baselines import swarm_box
+    from agent.evaluation.evalset import EvalSet
+
+    box = swarm_box(run, EvalSet.from_dir(run.split_dir).reference_id)
+    return None if box is None else box.tolist()
 
 
 # --------------------------------------------------------------------------------------------
