@@ -156,8 +156,8 @@ def train_centralised_on_robots(run: SwarmRun, training: SwarmTrainingConfig, st
     held-out frames excepted), each carried into the swarm's shared frame by the truth, in the field box
     the swarm used (the reference's), scored on the split's held-out views: robots that record choose
     their own frames, so the dataset's views are not theirs. The swarm's frame and box, not the world's:
-    the same model trained in frames turned against each other scored 32.2-33.4 dB on room-2-bags
-    (docs/results.md), a spread that would otherwise enter the comparison."""
+    a turn of the frame alone moves a model's score by about a dB (benchmarks/bench_frame.py), which
+    would otherwise enter the comparison."""
     t = time.monotonic()
     evalset = EvalSet.from_dir(run.split_dir)
     parts = []
