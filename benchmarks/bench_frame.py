@@ -48,10 +48,10 @@ def train_in_frame(out: Path, name: str, steps: int) -> dict:
 
     from agent.data.split import estimate_scene_box
     from agent.data.views import Views
+    from agent.evaluation.baselines import robots_kept_views
     from agent.evaluation.evalset import EvalSet
     from agent.geometry import box_from_center, transform_c2w
     from agent.metrics import finite_mean
-    from agent.swarm import own_holdout_split
     from agent.trainer import RobotTrainer
     from cli.scenario.report import load_run_spec, swarm_run
 
@@ -61,14 +61,7 @@ def train_in_frame(out: Path, name: str, steps: int) -> dict:
     run = swarm_run(out, spec.ids, True)
     evalset = EvalSet.from_dir(run.split_dir)
     to_frame = frame_from_world(evalset, name)
-    parts = []
-    for i in run.ids:
-        views, _ = own_holdout_split(run.folder(i).load_views(run.data_dir(i), training.image_width),
-                                     training.own_holdout_every)
-        c2w = transform_c2w(to_frame @ evalset.world_from_local(i), views.c2w.double()).float()
-        parts.append(Views(views.images, c2w, views.intrinsics, [f"robot{i}/{n}" for n in views.names]))
-    views = Views(torch.cat([p.images for p in parts]), torch.cat([p.c2w for p in parts]),
-                  torch.cat([p.intrinsics for p in parts]), [n for p in parts for n in p.names])
+    views = robots_kept_views(run, training, lambda i: to_frame @ evalset.world_from_local(i))
     cfg = replace(training.train, total_steps=steps, seed=training.seed, init_seed=training.seed,
                   cameras=replace(training.train.cameras, enabled=False))
     center, half, _ = estimate_scene_box(views, cfg.field.unbounded)

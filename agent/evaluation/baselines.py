@@ -150,6 +150,20 @@ def swarm_box(run: SwarmRun, reference_id: int) -> torch.Tensor | None:
     return None if ck is None else ck.box_from_shared.double()
 
 
+def robots_kept_views(run: SwarmRun, training: SwarmTrainingConfig, frame_from_local: Callable[[int], torch.Tensor]
+                      ) -> Views:
+    """Every robot's training frames (a bag's keyframes, its own held-out frames excepted), carried
+    into one frame by ``frame_from_local(i)`` ([4, 4] float64 for robot i)."""
+    parts = []
+    for i in run.ids:
+        views, _ = own_holdout_split(run.folder(i).load_views(run.data_dir(i), training.image_width),
+                                     training.own_holdout_every)
+        c2w = transform_c2w(frame_from_local(i), views.c2w.double()).float()
+        parts.append(Views(views.images, c2w, views.intrinsics, [f"robot{i}/{n}" for n in views.names]))
+    return Views(torch.cat([p.images for p in parts]), torch.cat([p.c2w for p in parts]),
+                 torch.cat([p.intrinsics for p in parts]), [n for p in parts for n in p.names])
+
+
 def train_centralised_on_robots(run: SwarmRun, training: SwarmTrainingConfig, steps: int,
                                 with_ssim: bool = True) -> CentralisedScores:
     """The centralised model on exactly the frames the robots trained on (a bag's keyframes, their own
@@ -160,14 +174,7 @@ def train_centralised_on_robots(run: SwarmRun, training: SwarmTrainingConfig, st
     would otherwise enter the comparison."""
     t = time.monotonic()
     evalset = EvalSet.from_dir(run.split_dir)
-    parts = []
-    for i in run.ids:
-        views, _ = own_holdout_split(run.folder(i).load_views(run.data_dir(i), training.image_width),
-                                     training.own_holdout_every)
-        shared = transform_c2w(evalset.T_shared_from_local(i), views.c2w.double()).float()
-        parts.append(Views(views.images, shared, views.intrinsics, [f"robot{i}/{n}" for n in views.names]))
-    views = Views(torch.cat([p.images for p in parts]), torch.cat([p.c2w for p in parts]),
-                  torch.cat([p.intrinsics for p in parts]), [n for p in parts for n in p.names])
+    views = robots_kept_views(run, training, evalset.T_shared_from_local)
     cfg = replace(training.train, total_steps=steps, seed=training.seed, init_seed=training.seed,
                   cameras=replace(training.train.cameras, enabled=False))
     box = swarm_box(run, evalset.reference_id)
