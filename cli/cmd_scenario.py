@@ -112,7 +112,7 @@ def run_cmd(
     typer.echo(f"[scenario] {'completed' if outcome.ok else 'FAILED'}: {outcome.reason} ({outcome.seconds:.0f} s)")
     if report and (out / "data" / "truth.json").is_file():
         with progress_listener():
-            build_report(out, spec, echo=typer.echo)
+            build_report(out, echo=typer.echo)
     if not outcome.ok:
         raise typer.Exit(1)
 

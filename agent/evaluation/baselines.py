@@ -90,9 +90,15 @@ class CentralisedScores:
     seconds: float
     views: int  # held-out views scored
     renders: np.ndarray | None = field(default=None, repr=False)  # [V, H, W, 3] uint8: its render of each view
+    field_parameters: int | None = None  # of its field: the robots' own count, or it is another model
 
     def to_dict(self) -> dict:
-        return {"psnr": self.psnr, "ssim": self.ssim, "seconds": self.seconds, "views": self.views}
+        return {"psnr": self.psnr, "ssim": self.ssim, "seconds": self.seconds, "views": self.views,
+                "field_parameters": self.field_parameters}
+
+
+def _field_parameters(trainer: RobotTrainer) -> int:
+    return sum(p.numel() for p in trainer.field.parameters())
 
 
 def _uint8(renders: list) -> np.ndarray:
@@ -141,7 +147,8 @@ def train_centralised(dataset: str, width: int | None, training: SwarmTrainingCo
     renders: list = []
     scores = evaluate_heldout(run, views, with_ssim=with_ssim, renders=renders)
     return CentralisedScores(psnr=finite_mean(scores["psnr"]), ssim=finite_mean(scores["ssim"]),
-                             seconds=time.monotonic() - t, views=len(scores["psnr"]), renders=_uint8(renders))
+                             seconds=time.monotonic() - t, views=len(scores["psnr"]), renders=_uint8(renders),
+                             field_parameters=_field_parameters(run.trainer))
 
 
 def swarm_box(run: SwarmRun, reference_id: int) -> torch.Tensor | None:
@@ -187,7 +194,8 @@ def train_centralised_on_robots(run: SwarmRun, training: SwarmTrainingConfig, st
     held_out = Views(evalset.views.images, evalset.shared_cameras(), evalset.shared_intrinsics(), evalset.views.names)
     scores = trainer.evaluate(held_out, frame="local", with_ssim=with_ssim, renders=renders)
     return CentralisedScores(psnr=finite_mean(scores["psnr"]), ssim=finite_mean(scores["ssim"]),
-                             seconds=time.monotonic() - t, views=len(scores["psnr"]), renders=_uint8(renders))
+                             seconds=time.monotonic() - t, views=len(scores["psnr"]), renders=_uint8(renders),
+                             field_parameters=_field_parameters(trainer))
 
 
 def train_alone(run: SwarmRun, robot_id: int, training: SwarmTrainingConfig, steps: int,

@@ -72,12 +72,16 @@ def swarm_run(out: Path, ids: list[int], recorded: bool = False) -> SwarmRun:
     return SwarmRun(out / "data", {i: out / "robots" / str(i) for i in ids}, data)
 
 
-def build_report(out: Path, spec: ScenarioSpec | None = None, echo: Callable[[str], None] = print) -> dict:
-    """Evaluate a finished (or stopped) run in ``out`` and write the report files. Returns report.json's dict."""
+def build_report(out: Path, echo: Callable[[str], None] = print) -> dict:
+    """Evaluate a finished (or stopped) run in ``out`` and write the report files. Returns report.json's dict.
+
+    The settings are run.json's: the scenario as the robots ran it, ``[training.train]`` fitted to the
+    split's capture (agent.defaults). The scenario file's own spec leaves unset what the fit filled, and
+    baselines trained from it would be other models than the robots' (a larger field, another grid)."""
     import torch
 
     out = Path(out)
-    spec = spec or load_run_spec(out)
+    spec = load_run_spec(out)
     run_doc = _run_doc(out)
     torch.set_num_threads(spec.report.threads)
     t0 = time.monotonic()
@@ -429,7 +433,8 @@ def _md_comparison(report: dict, spec: ScenarioSpec, ids: list[int]) -> list[str
         return []
     lines = ["## Comparison (same steps per model)", "",
              f"Centralised model ({'the frames the robots kept' if spec.record.enabled else 'all views'}, true poses, "
-             f"{b['steps']} steps): PSNR **{_f(b['centralised']['psnr'])}** dB, "
+             f"{b['steps']} steps, {b['centralised'].get('field_parameters') or 'n/a'} field parameters): "
+             f"PSNR **{_f(b['centralised']['psnr'])}** dB, "
              f"SSIM {_f(b['centralised']['ssim'], '.3f')}; swarm mean {_f(s['mean_psnr'])} dB "
              f"(gap {_f(s.get('gap_to_centralised_db'))} dB)."
              + (" The baselines were trained before on the same data, settings and code, and reused." if b.get("reused")

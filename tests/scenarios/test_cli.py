@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from agent.checkpoint import RunFolder
 from tests.agent_cli import agent
 from tests.scenarios.report_checks import check_figures, scored_rounds
 
@@ -100,6 +101,9 @@ def test_tiny_run_on_loopback_writes_the_report(tmp_path):
         assert set(r["rounds"]) == {"1", "2", "3"}
     assert report["links_bytes"]["1->2"] > 0 and report["links_bytes"]["2->1"] > 0
     assert report["baseline"]["centralised"]["psnr"] > 5 and set(report["baseline"]["alone"]) == {"1", "2"}
+    # the robots' model, as agent.defaults fitted it to the capture (the scenario leaves the MLP widths unset)
+    robot_field = RunFolder(out / "robots" / "1", create=False).load(1).trainer["field"]
+    assert report["baseline"]["centralised"]["field_parameters"] == sum(t.numel() for t in robot_field.values())
     md = (out / "report.md").read_text()
     assert "| robot | round | PSNR all" in md and "Centralised model" in md and "Fit of each robot's own training views" in md
     assert "- data credit: Photography: a test" in md

@@ -95,7 +95,7 @@ def run_scenario(tmp: Path, name: str, faults: str = "", steps: int = 8, rounds:
     runner = ScenarioRunner(spec, out, echo=lambda s: None)
     outcome = runner.run()
     assert not [n for n in list_namespaces() if n.startswith(runner.lab.run_id)], "namespaces left behind"
-    report = build_report(out, spec, echo=lambda s: None) if outcome.ok else None
+    report = build_report(out, echo=lambda s: None) if outcome.ok else None
     return outcome, out, report
 
 
