@@ -32,11 +32,13 @@ sys.path.insert(0, str(REPO))
 
 from agent.data.images import resize_views  # noqa: E402
 from agent.data.loaders import load_views, parse_procedural_spec  # noqa: E402
+from agent.defaults import Capture  # noqa: E402
 from agent.evaluation.baselines import train_baseline  # noqa: E402
 from agent.metrics import finite_mean  # noqa: E402
 from agent.trainer import TrainConfig  # noqa: E402
 from cli.config import apply_overrides  # noqa: E402
 from cli.scenario.spec import find_scenario, load_scenario  # noqa: E402
+from cli.swarm_file import fit_to_capture  # noqa: E402
 
 CASES = ("pinhole", "undistorted", "ignored")
 
@@ -76,8 +78,9 @@ def main() -> None:
         raise SystemExit("--data must be a procedural spec without k1 (the benchmark adds the lens)")
     torch.set_num_threads(args.threads)
     truth = load_case("pinhole", args.data, args.k1, args.native_scale)
-    # the quickstart's field and sampler, sized to 48 px images (scenarios/quickstart/scenario.toml)
-    small = load_scenario(find_scenario("quickstart")).training.train
+    # the quickstart's field and sampler: what its 48 px images with alpha call for (agent.defaults)
+    quickstart = load_scenario(find_scenario("quickstart"))
+    small = fit_to_capture(quickstart, quickstart.given_train, Capture(unbounded=False, width=48)).training.train
     base = apply_overrides(small, [f"total_steps={args.steps}", *args.set])
     seeds = [int(s) for s in args.seeds.split(",")]
     print(f"{args.data}, k1 = {args.k1}, photographed at {args.native_scale}x the width: {args.steps} steps per "
