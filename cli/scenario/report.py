@@ -163,6 +163,7 @@ def _baselines(spec: ScenarioSpec, run: SwarmRun, echo: Callable[[str], None]) -
     key = baseline_key({"dataset": dataset_fingerprint(spec.resolved_dataset()), "width": spec.width,
                         "training": to_dict(spec.training), "split": split, "steps": steps,
                         "alone": spec.baseline.alone, "ssim": spec.report.ssim, "robots": spec.ids,
+                        "workers": spec.report.workers,  # the centralised model's threads without the robots alone
                         "record": to_dict(spec.record) if spec.record.enabled else None,
                         "box": _swarm_box(run) if spec.record.enabled else None})
     if spec.baseline.reuse and (cached := load_cached(key)) is not None:
@@ -170,7 +171,8 @@ def _baselines(spec: ScenarioSpec, run: SwarmRun, echo: Callable[[str], None]) -
         return cached, True
     baselines = run_baselines(run, dataset=spec.resolved_dataset(), width=spec.width, training=spec.training,
                               test_every=spec.split.test_every, steps=steps, alone=spec.baseline.alone,
-                              with_ssim=spec.report.ssim, echo=echo, on_robots_frames=spec.record.enabled)
+                              with_ssim=spec.report.ssim, echo=echo, on_robots_frames=spec.record.enabled,
+                              workers=spec.report.workers)
     store_cached(key, baselines)
     return baselines, False
 

@@ -221,7 +221,8 @@ class ReportSpec:
     ssim: bool = True
     render_views: int = 3  # held-out views on the render sheet
     threads: int = 1  # torch threads for the evaluation (1 beats 2 on a busy 2-core machine)
-    workers: int = 2  # processes scoring the rounds' snapshots, one thread each (the same scores; 1 = here)
+    workers: int = 2  # processes scoring the rounds' snapshots, one thread each (the same scores; 1 = here);
+    # the baselines' robots alone as many, or the centralised model's threads when they are off
     # Also score each robot's final model with every held-out view's pose fitted to its image
     # (agent.evaluation.fit_view_pose), as pose-free NeRF is evaluated; 0 = off. For SfM frames.
     fit_heldout_poses_steps: int = 0
