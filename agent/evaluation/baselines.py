@@ -233,7 +233,7 @@ def run_baselines(run: SwarmRun, *, dataset: str, width: int | None, training: S
                   echo: Echo = silent, on_robots_frames: bool = False, workers: int = 2) -> Baselines:
     """Centralised model here; the robots alone in ``workers`` worker processes meanwhile, one thread each
     (2 cores: ~half the wall time). Without them the centralised model takes the ``workers`` cores as
-    threads (at 48 px, 0.125 s a step on 2 threads against 0.18 on one).
+    threads, rather than one thread beside idle cores.
 
     on_robots_frames: the centralised model on the frames the robots chose (recordings), not the dataset's."""
     pool = None
